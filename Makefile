@@ -1,0 +1,42 @@
+# Two entry points for a fresh Debian machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test lint bench system-deps clean
+
+# System libraries a fresh Debian lacks: libusb for open3d/pyrealsense2, mosquitto for the tests.
+system-deps:
+	@missing=""; \
+	ldconfig -p | grep -q 'libusb-1.0.so.0' || missing="$$missing libusb-1.0-0"; \
+	command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || missing="$$missing mosquitto"; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else \
+	    echo "missing system packages, run: sudo apt-get install$$missing"; exit 1; \
+	  fi; \
+	fi
+
+$(STAMP): pyproject.toml | system-deps
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test,bench]'
+	$(PY) -m pip install -q --no-deps 'pysparkplug==0.6.1'   # test-only Sparkplug decoder
+	touch $(STAMP)
+
+demo: system-deps $(STAMP)
+	$(VENV)/bin/silo-agent scan --config config/demo.toml
+
+test: system-deps $(STAMP)
+	$(VENV)/bin/ruff check silo_agent tests bench
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) bench/accuracy.py
+	$(PY) bench/speed.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

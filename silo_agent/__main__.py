@@ -1,0 +1,3 @@
+from silo_agent.cli import main
+
+raise SystemExit(main())

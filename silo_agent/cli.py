@@ -1,0 +1,376 @@
+"""`silo-agent` command line. Each subcommand lives in a small function; heavy imports stay inside
+them so that `process` pays only for what it uses.
+
+Exit status: 0 success, 1 a failed operation, 2 usage, 65 bad input data (EX_DATAERR),
+78 bad configuration (EX_CONFIG).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from silo_agent import __version__
+from silo_agent.config import EX_CONFIG, Config, ConfigError, load_config
+
+if TYPE_CHECKING:
+    from silo_agent.capture import CameraFailure
+    from silo_agent.detect import Pile
+    from silo_agent.scan import CameraCloud, Scan
+
+EX_DATAERR = 65
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _fail(message: str, status: int) -> int:
+    print(f"silo-agent: {message}", file=sys.stderr)
+    return status
+
+
+# ---------------------------------------------------------------- check-config
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    config = load_config(args.file)
+    print(f"{args.file}: ok (silo {config.silo.id}, {len(config.cameras)} camera(s))")
+    return 0
+
+
+# ---------------------------------------------------------------- process
+
+
+def _settings_for(scan_settings: dict, config: Config | None, args: argparse.Namespace):
+    """Scan's own settings, then --config, then flags (later wins)."""
+    from silo_agent.config import ReconstructionConfig
+
+    merged: dict = {}
+    known = ReconstructionConfig.model_fields
+    merged.update({k: v for k, v in scan_settings.items() if k in known})
+    if config is not None:
+        merged.update(config.reconstruction.model_dump(exclude_unset=True))
+    if args.grid_step is not None:
+        merged["grid_step_m"] = args.grid_step
+    if args.method is not None:
+        merged["method"] = args.method
+    try:
+        return ReconstructionConfig.model_validate(merged)
+    except Exception as exc:  # pydantic.ValidationError, reported like a config error
+        from pydantic import ValidationError
+
+        if isinstance(exc, ValidationError):
+            from silo_agent.config import describe_validation_error
+
+            raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
+        raise
+
+
+def cmd_process(args: argparse.Namespace) -> int:
+    from silo_agent.config import DetectionConfig
+    from silo_agent.detect import ModelError, analyse
+    from silo_agent.scan import ScanError, read_scan
+
+    config = load_config(args.config) if args.config else None
+    try:
+        scan = read_scan(args.scan_dir)
+    except ScanError as exc:
+        return _fail(str(exc), EX_DATAERR)
+    settings = _settings_for(scan.reconstruction, config, args)
+    site = scan.site
+    if config is not None:  # the config's site wins over the scan's, as for any setting
+        from silo_agent.reconstruct import site_from_config
+
+        site = site_from_config(config)
+    detection = config.detection if config is not None else DetectionConfig()
+    try:
+        result = analyse(scan, settings, detection, site=site)
+    except ModelError as exc:
+        return _fail(str(exc), EX_CONFIG)
+    if args.json:
+        print(json.dumps(result.summary(), allow_nan=False))
+    else:
+        print(result.describe())
+    return 0
+
+
+# ---------------------------------------------------------------- cameras
+
+
+def cmd_devices(args: argparse.Namespace) -> int:
+    from silo_agent.capture.realsense import list_devices
+
+    devices = list_devices()
+    if not devices:
+        print("no RealSense devices found")
+        return 1
+    for device in devices:
+        print(
+            f"{device.serial}  {device.name}  firmware {device.firmware or '?'}  "
+            f"USB {device.usb_type or '?'}  IMU {'yes' if device.has_imu else 'no'}"
+        )
+        if device.usb2:
+            print(
+                f"silo-agent: warning: {device.serial} is on USB {device.usb_type}: depth will "
+                "drop frames or fail; connect it to a USB 3 port or a powered USB 3 hub",
+                file=sys.stderr,
+            )
+    return 0
+
+
+def _new_scan(
+    config: Config, clouds: list[CameraCloud], failures: list[CameraFailure], started: datetime
+) -> Scan:
+    """A silo-scan/1 `Scan` of one capture; the scan id is the silo and the capture's UTC time."""
+    from silo_agent.reconstruct import site_from_config
+    from silo_agent.scan import Scan
+
+    silo = config.silo
+    return Scan(
+        scan_id=f"{silo.id}-{started:%Y%m%dT%H%M%SZ}",
+        captured_at=f"{started:%Y-%m-%dT%H:%M:%SZ}",
+        silo_id=silo.id,
+        site=site_from_config(config),
+        cameras=clouds,
+        reconstruction=config.reconstruction.model_dump(mode="json"),
+        extra={
+            "software_version": __version__,
+            "degraded": bool(failures),
+            "failures": [{"serial": f.serial, "error": f.error} for f in failures],
+        },
+    )
+
+
+def _previous_piles(scans: Path, scan_id: str) -> list[Pile]:
+    """Piles of the latest earlier scan kept in `scans` (its result.json), so pile ids carry
+    over; none when there is no readable earlier result."""
+    from silo_agent.detect import Pile
+
+    earlier = sorted(p for p in scans.glob("*/result.json") if p.parent.name < scan_id)
+    if not earlier:
+        return []
+    try:
+        piles = json.loads(earlier[-1].read_text(encoding="utf-8")).get("piles") or []
+        return [Pile.from_json(p) for p in piles]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        print(f"silo-agent: warning: {earlier[-1]}: no pile ids carried over: {exc}",
+              file=sys.stderr)  # fmt: skip
+        return []
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    from silo_agent.capture import capture_all
+    from silo_agent.detect import ModelError, analyse
+    from silo_agent.scan import ScanError, write_scan
+
+    config = load_config(args.config)
+    started = datetime.now(UTC)
+    capture = capture_all(config)
+    for failure in capture.failures:
+        print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
+    if not capture.clouds:
+        return _fail("no camera delivered a cloud; no scan written", 1)
+    scan = _new_scan(config, capture.clouds, capture.failures, started)
+    try:  # audit first: the raw scan is kept even if processing fails
+        directory = write_scan(scan, (args.out or config.audit.directory) / scan.scan_id)
+    except (ScanError, OSError) as exc:
+        return _fail(f"cannot write the scan: {exc}", 1)
+    previous = _previous_piles(directory.parent, scan.scan_id)
+    try:
+        result = analyse(scan, config.reconstruction, config.detection, previous=previous)
+    except ModelError as exc:
+        return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
+    summary = result.summary()
+    (directory / "result.json").write_text(json.dumps(summary, allow_nan=False, indent=2) + "\n")
+    if args.json:
+        report = {**summary, "scan_dir": str(directory), "degraded": capture.degraded}
+        report["failures"] = scan.extra["failures"]
+        print(json.dumps(report, allow_nan=False))
+    else:
+        print(result.describe())
+        print(f"scan written to {directory}" + (" (degraded)" if capture.degraded else ""))
+    return 0
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"want a duration in seconds > 0, got {text!r}")
+    return value
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from silo_agent.capture import CaptureError
+    from silo_agent.capture.realsense import record_camera
+
+    config = load_config(args.config)
+    live = [camera for camera in config.cameras if camera.source == "realsense"]
+    if not live:
+        return _fail(f"{args.config}: no live cameras (source = \"realsense\") to record", 1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    failed = 0
+    for camera in live:  # one after another: several D455s streaming at once saturate USB
+        path = args.out / f"{camera.serial}.db3"
+        try:
+            frames = record_camera(camera, path, args.seconds)
+        except CaptureError as exc:
+            print(f"silo-agent: {exc}", file=sys.stderr)
+            failed += 1
+            continue
+        print(f"{camera.serial}: {frames} frames -> {path}")
+    return 1 if failed else 0
+
+
+# ---------------------------------------------------------------- simulate
+
+
+def _views(text: str) -> list[str]:
+    from silo_agent.sim.layouts import VIEWS
+
+    views = [v.strip().upper() for v in text.split(",") if v.strip()]
+    unknown = [v for v in views if v not in VIEWS]
+    if not views or unknown or len(set(views)) != len(views):
+        raise argparse.ArgumentTypeError(f"want distinct views among {', '.join(VIEWS)}")
+    return views
+
+
+def _calib_error(text: str) -> tuple[float, float]:
+    try:
+        degrees, metres = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("want DEG,M, e.g. 0.5,0.01") from None
+    if degrees < 0 or metres < 0:
+        raise argparse.ArgumentTypeError("DEG and M must be >= 0")
+    return degrees, metres
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"want a whole number >= 1, got {text!r}")
+    return value
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from silo_agent.scan import ScanError, write_scan
+    from silo_agent.sim import make_scene, simulate
+    from silo_agent.sim.simulate import SimRig, plan_views
+
+    scene = make_scene(args.scene, args.grain)
+    rig = SimRig(scene)
+    try:
+        scan = simulate(scene, args.views, args.seed, args.calib_error, args.grid_step,
+                        layout=args.layout, color=args.color, rig=rig)
+    except ValueError as exc:  # a layout that does not fit the scene
+        return _fail(str(exc), 2)
+    try:
+        write_scan(scan, args.out)
+    except ScanError as exc:
+        return _fail(str(exc), 1)
+    points = sum(len(c.points) for c in scan.cameras)
+    print(f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
+          f"{points} points, truth {scene.volume_m3:.4f} m³")
+    if args.record is not None:
+        from silo_agent.sim.record import record_views
+
+        views = plan_views(scene, args.views, args.seed, args.calib_error, args.layout)
+        for path in record_views(rig, views, args.seed, args.record, args.record_frames,
+                                 args.color):
+            print(f"{path}: {args.record_frames} depth frames")
+    return 0
+
+
+# ---------------------------------------------------------------- wiring
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="silo-agent", description="Grain silo inventory from RealSense depth cameras."
+    )
+    parser.add_argument("--version", action="version", version=f"silo-agent {__version__}")
+    parser.add_argument(
+        "--log-level", default="info", choices=["debug", "info", "warning", "error"]
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("check-config", help="validate a configuration file and exit")
+    p.add_argument("file", type=Path)
+    p.set_defaults(handler=cmd_check_config)
+
+    p = sub.add_parser("process", help="reconstruct a silo-scan/1 directory offline")
+    p.add_argument("scan_dir", type=Path, metavar="SCAN_DIR")
+    p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
+    p.add_argument("--grid-step", type=float, metavar="METRES")
+    p.add_argument(
+        "--method", choices=["bicm", "rectangle", "alpha", "poisson", "hull"],
+        help="reconstruction method (baselines for comparison); default bicm",
+    )
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.set_defaults(handler=cmd_process)
+
+    p = sub.add_parser("devices", help="list connected RealSense cameras")
+    p.set_defaults(handler=cmd_devices)
+
+    p = sub.add_parser("scan", help="capture all cameras once, write the scan, process it")
+    p.add_argument("--config", type=Path, required=True, metavar="FILE")
+    p.add_argument(
+        "--out", type=Path, metavar="DIR", help="where to write the scan; default: audit.directory"
+    )
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.set_defaults(handler=cmd_scan)
+
+    p = sub.add_parser("record", help="record each live camera to DIR/<serial>.db3")
+    p.add_argument("--config", type=Path, required=True, metavar="FILE")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument("--seconds", type=_seconds, default=5.0, metavar="S", help="default 5")
+    p.set_defaults(handler=cmd_record)
+
+    p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
+    p.add_argument("--scene", required=True, choices=["cone", "piles", "ridge", "crater", "full"])
+    p.add_argument("--views", required=True, type=_views, metavar="A1,A5",
+                   help="camera positions A1-A8 (midpoints A1 A3 A5 A7, corners A2 A4 A6 A8)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="new scan directory")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--calib-error", type=_calib_error, default=(0.0, 0.0), metavar="DEG,M",
+                   help="true poses off the written extrinsics by DEG degrees and M metres")
+    p.add_argument("--grid-step", type=float, default=0.02, metavar="M",
+                   help="grid step written into the scan's reconstruction settings")
+    p.add_argument("--grain", default="wheat", choices=["wheat", "corn", "soybeans", "rice"])
+    p.add_argument("--layout", choices=["paper", "wall"],
+                   help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)")
+    p.add_argument("--color", action="store_true", help="colour the points (normal shading)")
+    p.add_argument("--record", type=Path, metavar="DIR",
+                   help="also write one rosbag2 <serial>.db3 recording per camera into DIR")
+    p.add_argument("--record-frames", type=_positive, default=40, metavar="N",
+                   help="depth frames per recording (default 40: 30 warm-up + 10 aggregated)")
+    p.set_defaults(handler=cmd_simulate)
+
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from silo_agent.log import configure_logging
+
+    configure_logging(args.log_level)
+    handler: Handler = args.handler
+    try:
+        return handler(args)
+    except ConfigError as exc:
+        return _fail(str(exc), EX_CONFIG)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

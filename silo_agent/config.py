@@ -1,0 +1,360 @@
+"""Configuration: pydantic models of the TOML file, and the one home of every default.
+
+A bad file is rejected before anything starts, with the file, the key path and what was
+expected (`ConfigError`, exit status 78 = EX_CONFIG).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from silo_agent.geometry import check_polygon, rigid_transform_problem, transform_from_euler
+
+EX_CONFIG = 78
+SAFE_ID = r"^[A-Za-z0-9_-]+$"
+
+
+class ConfigError(Exception):
+    """A configuration that cannot be used; the message names file, key and expectation."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+Point2 = tuple[float, float]
+Matrix4 = tuple[
+    tuple[float, float, float, float],
+    tuple[float, float, float, float],
+    tuple[float, float, float, float],
+    tuple[float, float, float, float],
+]
+
+
+class SiloConfig(Strict):
+    id: str = Field(pattern=SAFE_ID, description="used in topics and scan ids")
+    region: list[Point2] = Field(min_length=3, description="integration polygon, silo frame")
+    floor_z: float = 0.0
+    ceiling_z: float | None = None
+    base: Literal["floor", "boundary"] = "floor"
+    bulk_density_t_m3: float | None = Field(default=None, gt=0)
+    timezone: str = "UTC"
+
+    @field_validator("region")
+    @classmethod
+    def _region_is_simple(cls, region: list[Point2]) -> list[Point2]:
+        problem = check_polygon(np.asarray(region, dtype=float))
+        if problem:
+            raise ValueError(problem)
+        return region
+
+    @model_validator(mode="after")
+    def _ceiling_above_floor(self) -> SiloConfig:
+        if self.ceiling_z is not None and self.ceiling_z <= self.floor_z:
+            raise ValueError(f"ceiling_z ({self.ceiling_z}) must be above floor_z ({self.floor_z})")
+        return self
+
+
+class ReconstructionConfig(Strict):
+    """BICM settings (paper 2.3-2.4). `None` means: adapt to the data (see reconstruct.cells)."""
+
+    method: Literal["bicm", "rectangle", "alpha", "poisson", "hull"] = "bicm"
+    grid_step_m: float = Field(default=0.02, gt=0.001, le=1.0)
+    voxel_size_m: float | None = Field(
+        default=None, gt=0, description="paper 2.3.3 voxel down-sampling; default off"
+    )
+    cluster_eps_m: float | None = Field(
+        default=None, gt=0, description="height gap that separates two clusters in a cell"
+    )
+    cluster_min_points: int | None = Field(
+        default=None, ge=1, description="smallest cluster kept; default relative to the cell"
+    )
+    max_clusters: int = Field(default=2, ge=1, le=8)
+    fill: Literal["membrane", "bspline"] = Field(
+        default="membrane", description="how empty cells are filled (reconstruct/fill.py)"
+    )
+    slope_correction: bool = True
+    min_coverage: float = Field(default=0.3, ge=0, le=1)
+    alpha_m: float | None = Field(
+        default=None, gt=0, description="alpha baseline radius; default 4 x grid step"
+    )
+    poisson_depth: int = Field(default=8, ge=4, le=12)
+
+
+class OnnxDetectionConfig(Strict):
+    """A site's Ultralytics YOLO model exported to ONNX (paper 2.2); none ships with silo-agent."""
+
+    model: Path = Field(description="the .onnx file of `yolo export format=onnx`")
+    confidence: float = Field(default=0.5, gt=0, lt=1, description="paper 2.2 threshold")
+    iou: float = Field(default=0.45, gt=0, le=1, description="NMS overlap that drops a box")
+    pile_classes: list[str] = Field(default=["pile"], description="class names that are piles")
+    robot_classes: list[str] = Field(
+        default=["robot"], description="class names that are the leveling robot"
+    )
+    cluster_radius_m: float = Field(
+        default=0.98, gt=0, description="paper 2.3.2 radius clustering around the box's point"
+    )
+
+    @model_validator(mode="after")
+    def _disjoint_classes(self) -> OnnxDetectionConfig:
+        both = sorted(set(self.pile_classes) & set(self.robot_classes))
+        if both:
+            raise ValueError(f"classes both pile and robot: {', '.join(both)}")
+        return self
+
+
+class DetectionConfig(Strict):
+    """Pile detection: the geometric detector on the height map, and optionally a YOLO model."""
+
+    geometric: bool = True
+    min_height_m: float = Field(default=0.10, gt=0, description="a pile's peak above its base")
+    min_area_m2: float = Field(default=0.10, gt=0, description="smaller footprints are dropped")
+    min_prominence_m: float = Field(
+        default=0.10, gt=0, description="a peak this far above its saddle is a pile of its own"
+    )
+    min_separation_m: float = Field(default=0.3, gt=0, description="closer peaks are one pile")
+    background_m: float | None = Field(
+        default=None, gt=0,
+        description="piles on a local background (opening of this width) instead of the base",
+    )
+    match_distance_m: float = Field(
+        default=0.5, gt=0, description="a pile this close to one of the last scan keeps its id"
+    )
+    onnx: OnnxDetectionConfig | None = None
+
+
+class CameraConfig(Strict):
+    serial: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    source: Literal["realsense", "playback", "sim"] = "realsense"
+    playback: Path | None = None
+    extrinsic: Matrix4 | None = None
+    rotate_deg: tuple[float, float, float] | None = None
+    translate_m: tuple[float, float, float] | None = None
+    view: str | None = Field(default=None, description="sim only: a named layout position")
+    width: int = 848
+    height: int = 480
+    fps: int = 30
+    frames: int = Field(default=10, ge=1, description="depth frames aggregated per capture")
+    warmup_frames: int = Field(default=30, ge=0)
+    timeout_s: float = Field(default=10.0, gt=0)
+    color: bool = Field(
+        default=False, description="also stream colour, aligned to depth, one RGB per point"
+    )
+    emitter: bool = Field(default=True, description="IR projector on (texture for flat grain)")
+    visual_preset: Literal["default", "high_accuracy", "high_density", "medium_density", "hand"] = (
+        Field(default="high_accuracy", description="D4xx depth preset: fewer, surer points")
+    )
+    laser_power_mw: float | None = Field(
+        default=None, ge=0, description="projector power; None keeps the device's default"
+    )
+    min_depth_m: float = Field(default=0.3, ge=0, description="threshold filter: nearer is dropped")
+    max_depth_m: float = Field(default=10.0, gt=0, description="threshold filter: farther dropped")
+    decimation: int = Field(default=1, ge=1, le=8, description="decimation factor; 1 = off")
+    spatial_filter: bool = Field(default=True, description="edge-preserving spatial smoothing")
+    temporal_filter: bool = Field(default=True, description="smoothing over successive frames")
+    aggregation: Literal["median", "temporal"] = Field(
+        default="median",
+        description="per-pixel median of the N filtered frames, or the temporal filter's last",
+    )
+    min_valid_fraction: float = Field(
+        default=0.5, gt=0, le=1, description="median: a pixel needs depth in this share of frames"
+    )
+    retries: int = Field(default=2, ge=0, description="live: hardware resets + retries on failure")
+    reset_wait_s: float = Field(
+        default=20.0, gt=0, description="live: how long to wait for re-enumeration after a reset"
+    )
+    imu_samples: int = Field(default=50, ge=1, description="accelerometer samples averaged")
+    gravity_tolerance_deg: float = Field(
+        default=3.0, gt=0, description="warn when IMU and extrinsic vertical differ by more"
+    )
+
+    @model_validator(mode="after")
+    def _one_pose(self) -> CameraConfig:
+        has_matrix = self.extrinsic is not None
+        has_euler = self.rotate_deg is not None or self.translate_m is not None
+        if has_matrix and has_euler:
+            raise ValueError("give either extrinsic or rotate_deg/translate_m, not both")
+        if self.source == "playback" and self.playback is None:
+            raise ValueError("source = 'playback' needs playback = FILE")
+        if self.source != "sim" and not has_matrix and not has_euler:
+            raise ValueError("needs extrinsic (4x4) or rotate_deg + translate_m")
+        if self.max_depth_m <= self.min_depth_m:
+            raise ValueError(
+                f"max_depth_m ({self.max_depth_m}) must be above min_depth_m ({self.min_depth_m})"
+            )
+        if self.aggregation == "temporal" and not self.temporal_filter:
+            raise ValueError("aggregation = 'temporal' needs temporal_filter = true")
+        if has_matrix:
+            problem = rigid_transform_problem(np.asarray(self.extrinsic, dtype=float))
+            if problem:
+                raise ValueError(f"extrinsic: {problem}")
+        return self
+
+    def extrinsic_matrix(self) -> np.ndarray | None:
+        """Camera -> silo transform, or None for a sim camera placed by its `view`."""
+        if self.extrinsic is not None:
+            return np.asarray(self.extrinsic, dtype=float)
+        if self.rotate_deg is None and self.translate_m is None:
+            return None
+        return transform_from_euler(self.rotate_deg or (0, 0, 0), self.translate_m or (0, 0, 0))
+
+
+class SimulationConfig(Strict):
+    scene: str = "cone"
+    grain: Literal["wheat", "corn", "soybeans", "rice"] = "wheat"
+    seed: int = 0
+    layout: Literal["paper", "wall"] = "paper"
+    calib_error_deg: float = Field(default=0.0, ge=0)
+    calib_error_m: float = Field(default=0.0, ge=0)
+
+
+class MqttTlsConfig(Strict):
+    """TLS to the broker; without `ca_file` the system trust store verifies the broker."""
+
+    ca_file: Path | None = None
+    cert_file: Path | None = Field(default=None, description="client certificate (PEM)")
+    key_file: Path | None = Field(default=None, description="client private key (PEM)")
+    key_password_file: Path | None = None
+    key_password_env: str | None = None
+
+    @model_validator(mode="after")
+    def _pairs(self) -> MqttTlsConfig:
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("cert_file and key_file go together")
+        if self.key_password_file is not None and self.key_password_env is not None:
+            raise ValueError("give key_password_file or key_password_env, not both")
+        return self
+
+
+class SparkplugConfig(Strict):
+    """Eclipse Sparkplug B 3.0 dialect, published next to the JSON topics."""
+
+    enabled: bool = False
+    group_id: str = Field(default="silos", pattern=r"^[^#+/]+$")
+    edge_node_id: str | None = Field(
+        default=None, pattern=r"^[^#+/]+$", description="default: silo.id"
+    )
+    primary_host_id: str | None = Field(
+        default=None, pattern=r"^[^#+/]+$", description="wait for this host's STATE online"
+    )
+
+
+class HomeAssistantConfig(Strict):
+    """Home Assistant MQTT discovery (device-based)."""
+
+    enabled: bool = False
+    discovery_prefix: str = Field(default="homeassistant", pattern=r"^[^#+]+$")
+
+
+class MqttConfig(Strict):
+    host: str = "127.0.0.1"
+    port: int = Field(default=1883, ge=1, le=65535)
+    topic_prefix: str = Field(default="silo", pattern=r"^[^#+]+$")
+    protocol: Literal["5", "3.1.1"] = "5"
+    client_id: str | None = Field(
+        default=None, min_length=1, max_length=64, description="default: silo-agent-<silo.id>"
+    )
+    keepalive_s: int = Field(default=30, ge=5, le=65535)
+    username: str | None = None
+    password_file: Path | None = None
+    password_env: str | None = None
+    tls: MqttTlsConfig | None = None
+    reconnect_min_s: float = Field(default=1.0, gt=0)
+    reconnect_max_s: float = Field(default=60.0, gt=0)
+    max_inflight: int = Field(default=20, ge=1, le=65535)
+    outbox_path: Path = Path("/var/lib/silo-agent/outbox.sqlite")
+    outbox_max_messages: int = Field(default=100_000, ge=10)
+    outbox_max_bytes: int = Field(default=500_000_000, ge=100_000)
+    outbox_max_age_days: float = Field(default=30.0, gt=0)
+    shutdown_timeout_s: float = Field(default=5.0, ge=0)
+    sparkplug: SparkplugConfig = SparkplugConfig()
+    homeassistant: HomeAssistantConfig = HomeAssistantConfig()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> MqttConfig:
+        if self.password_file is not None and self.password_env is not None:
+            raise ValueError("give password_file or password_env, not both")
+        if (self.password_file is not None or self.password_env is not None) and not self.username:
+            raise ValueError("a password needs a username")
+        if self.reconnect_max_s < self.reconnect_min_s:
+            raise ValueError("reconnect_max_s must be >= reconnect_min_s")
+        return self
+
+
+class ScheduleConfig(Strict):
+    interval_s: float | None = Field(default=None, gt=0)
+    cron: str | None = None
+    scan_at_start: bool = True
+
+
+class AuditConfig(Strict):
+    directory: Path = Path("/var/lib/silo-agent/scans")
+    max_bytes: int = Field(default=20_000_000_000, gt=0)
+    max_age_days: float = Field(default=90, gt=0)
+
+
+class Config(Strict):
+    silo: SiloConfig
+    reconstruction: ReconstructionConfig = ReconstructionConfig()
+    detection: DetectionConfig = DetectionConfig()
+    cameras: Annotated[list[CameraConfig], Field(min_length=1)]
+    simulation: SimulationConfig = SimulationConfig()
+    mqtt: MqttConfig = MqttConfig()
+    schedule: ScheduleConfig = ScheduleConfig()
+    audit: AuditConfig = AuditConfig()
+
+    @model_validator(mode="after")
+    def _unique_serials(self) -> Config:
+        serials = [c.serial for c in self.cameras]
+        dupes = sorted({s for s in serials if serials.count(s) > 1})
+        if dupes:
+            raise ValueError(f"camera serials must be unique, repeated: {', '.join(dupes)}")
+        return self
+
+
+def describe_validation_error(exc: ValidationError, source: str) -> str:
+    """One line per problem: `source: key.path: what was expected`."""
+    lines = []
+    for error in exc.errors():
+        path = ".".join(str(p) for p in error["loc"]) or "(top level)"
+        message = error["msg"].removeprefix("Value error, ")
+        if error["type"] == "extra_forbidden":
+            message = "unknown key"
+        elif error["type"] == "missing":
+            message = "required key is missing"
+        lines.append(f"{source}: {path}: {message}")
+    return "\n".join(lines)
+
+
+def parse_config(data: dict, source: str) -> Config:
+    """Validate a parsed TOML document; `source` names it in errors."""
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, source)) from None
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML config file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return parse_config(data, str(path))

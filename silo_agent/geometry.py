@@ -1,0 +1,172 @@
+"""Pure geometry helpers: rigid transforms, the paper's Euler form, polygons on a grid."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
+    """Why `matrix` is not a rigid 4x4 camera->silo transform, or None if it is."""
+    if matrix.shape != (4, 4):
+        return f"must be 4x4, got shape {matrix.shape}"
+    if not np.all(np.isfinite(matrix)):
+        return "contains NaN or infinity"
+    if not np.allclose(matrix[3], [0, 0, 0, 1], atol=tolerance):
+        return f"last row must be [0, 0, 0, 1], got {matrix[3].tolist()}"
+    rotation = matrix[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=tolerance):
+        return "rotation part is not orthonormal (scale or shear present)"
+    if np.linalg.det(rotation) < 0:
+        return "rotation part is a reflection (determinant -1)"
+    return None
+
+
+def rotation_from_euler(rotate_deg: Sequence[float]) -> np.ndarray:
+    """Paper Appendix A: R = Rz(rz) @ Ry(ry) @ Rx(rx), angles in degrees.
+
+    This order reproduces the printed matrices T1-T6 (tests/test_geometry.py).
+    """
+    rx, ry, rz = np.radians(np.asarray(rotate_deg, dtype=float))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    rot_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    rot_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rot_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rot_z @ rot_y @ rot_x
+
+
+def euler_from_rotation(rotation: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of `rotation_from_euler` (degrees), for writing configs in the paper's form."""
+    ry = np.arcsin(-np.clip(rotation[2, 0], -1.0, 1.0))
+    if abs(np.cos(ry)) > 1e-9:
+        rx = np.arctan2(rotation[2, 1], rotation[2, 2])
+        rz = np.arctan2(rotation[1, 0], rotation[0, 0])
+    else:  # gimbal lock: put everything in rz
+        rx = 0.0
+        rz = np.arctan2(-rotation[0, 1], rotation[1, 1])
+    return tuple(float(v) for v in np.degrees([rx, ry, rz]))  # type: ignore[return-value]
+
+
+def transform_from_euler(rotate_deg: Sequence[float], translate_m: Sequence[float]) -> np.ndarray:
+    """4x4 camera->silo transform from the paper's `rotate`/`translate` pair."""
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation_from_euler(rotate_deg)
+    matrix[:3, 3] = np.asarray(translate_m, dtype=float)
+    return matrix
+
+
+def _segments_cross(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
+    """Proper intersection test of segment pairs (broadcast), touching ends excluded."""
+
+    def orient(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
+            r[..., 0] - p[..., 0]
+        )
+
+    d1, d2 = orient(b0, b1, a0), orient(b0, b1, a1)
+    d3, d4 = orient(a0, a1, b0), orient(a0, a1, b1)
+    return (d1 * d2 < 0) & (d3 * d4 < 0)
+
+
+def check_polygon(polygon: np.ndarray) -> str | None:
+    """Why `polygon` (V, 2) is not a usable simple region, or None if it is."""
+    if polygon.ndim != 2 or polygon.shape[1] != 2:
+        return f"must be a list of [x, y] pairs, got shape {polygon.shape}"
+    if len(polygon) < 3:
+        return f"needs at least 3 vertices, got {len(polygon)}"
+    if not np.all(np.isfinite(polygon)):
+        return "contains NaN or infinity"
+    start, end = polygon, np.roll(polygon, -1, axis=0)
+    count = len(polygon)
+    i, j = np.triu_indices(count, k=2)
+    keep = ~((i == 0) & (j == count - 1))  # first and last edge share a vertex
+    i, j = i[keep], j[keep]
+    crossing = _segments_cross(start[i], end[i], start[j], end[j])
+    if np.any(crossing):
+        k = int(np.argmax(crossing))
+        return f"is self-intersecting (edge {i[k]} crosses edge {j[k]})"
+    if abs(polygon_area(polygon)) < 1e-9:
+        return "has zero area"
+    return None
+
+
+def polygon_area(polygon: np.ndarray) -> float:
+    """Signed shoelace area."""
+    x, y = polygon[:, 0], polygon[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def points_in_polygon(x: np.ndarray, y: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Even-odd rule, vectorised over points (one pass per edge)."""
+    inside = np.zeros(np.broadcast(x, y).shape, dtype=bool)
+    x0, y0 = polygon[:, 0], polygon[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    for ax, ay, bx, by in zip(x0, y0, x1, y1, strict=True):
+        if ay == by:
+            continue
+        straddles = (ay > y) != (by > y)
+        x_cross = ax + (y - ay) * (bx - ax) / (by - ay)
+        inside ^= straddles & (x < x_cross)
+    return inside
+
+
+def _centres_inside(
+    polygon: np.ndarray, origin: tuple[float, float], step: float, shape: tuple[int, int]
+) -> np.ndarray:
+    """Even-odd test of every cell centre by scanlines: O(rows x edges + cells)."""
+    rows, cols = shape
+    yc = origin[1] + (np.arange(rows) + 0.5) * step
+    x0, y0 = polygon[:, 0], polygon[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    straddles = (y0[None, :] > yc[:, None]) != (y1[None, :] > yc[:, None])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x_cross = x0 + (yc[:, None] - y0) * (x1 - x0) / (y1 - y0)
+    row, edge = np.nonzero(straddles)
+    # crossings strictly left of centre j: j >= first = floor((x - ox) / step - 0.5) + 1
+    first = np.floor((x_cross[row, edge] - origin[0]) / step - 0.5).astype(np.int64) + 1
+    counts = np.zeros((rows, cols + 1), dtype=np.int64)
+    np.add.at(counts, (row, np.clip(first, 0, cols)), 1)
+    return (np.cumsum(counts, axis=1)[:, :cols] % 2) == 1
+
+
+def _boundary_band(
+    polygon: np.ndarray, origin: tuple[float, float], step: float, shape: tuple[int, int]
+) -> np.ndarray:
+    """Cells the polygon's edges pass through (edges sampled at step / 8)."""
+    rows, cols = shape
+    start, end = polygon, np.roll(polygon, -1, axis=0)
+    lengths = np.linalg.norm(end - start, axis=1)
+    counts = np.maximum(2, np.ceil(lengths / (step / 8)).astype(np.int64) + 1)
+    edge = np.repeat(np.arange(len(polygon)), counts)
+    t = np.concatenate([np.linspace(0.0, 1.0, n) for n in counts])
+    points = start[edge] + t[:, None] * (end - start)[edge]
+    col = np.floor((points[:, 0] - origin[0]) / step).astype(np.int64)
+    row = np.floor((points[:, 1] - origin[1]) / step).astype(np.int64)
+    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    band = np.zeros(shape, dtype=bool)
+    band[row[ok], col[ok]] = True
+    return band
+
+
+def cell_fractions(
+    polygon: np.ndarray, origin: tuple[float, float], step: float, shape: tuple[int, int],
+    supersample: int = 16,
+) -> np.ndarray:
+    """Fraction (0..1) of each grid cell inside `polygon`; shape = (rows along y, cols along x).
+
+    Cells the boundary does not cross are 0 or 1 from their centre (scanlines); only the thin
+    band of cells the edges pass through is supersampled (supersample^2 points per cell).
+    """
+    fraction = _centres_inside(polygon, origin, step, shape).astype(float)
+    band = _boundary_band(polygon, origin, step, shape)
+    if np.any(band):
+        rows, cols = np.nonzero(band)
+        cx = origin[0] + (cols + 0.5) * step
+        cy = origin[1] + (rows + 0.5) * step
+        offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+        ox, oy = np.meshgrid(offsets * step, offsets * step)
+        sx = cx[:, None] + ox.ravel()[None, :]
+        sy = cy[:, None] + oy.ravel()[None, :]
+        fraction[band] = points_in_polygon(sx, sy, polygon).mean(axis=1)
+    return fraction

@@ -1,0 +1,354 @@
+"""The `silo-scan/1` directory (../shared/spec/scan-format.md): types, reader, writer, PLY I/O.
+
+A reader rejects a bad directory with a `ScanError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from silo_agent.config import describe_validation_error
+from silo_agent.geometry import check_polygon, rigid_transform_problem
+
+FORMAT = "silo-scan/1"
+MANIFEST = "scan.json"
+
+
+class ScanError(Exception):
+    """A scan directory that does not follow silo-scan/1; the message names file and problem."""
+
+
+# ---------------------------------------------------------------- types
+
+
+@dataclass(frozen=True)
+class Site:
+    region: np.ndarray  # (V, 2) polygon in the silo frame
+    floor_z: float
+    ceiling_z: float | None = None
+    base: Literal["floor", "boundary"] = "floor"
+    bulk_density_t_m3: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"region": self.region.tolist(), "floor_z": self.floor_z}
+        if self.ceiling_z is not None:
+            out["ceiling_z"] = self.ceiling_z
+        out["base"] = self.base
+        if self.bulk_density_t_m3 is not None:
+            out["bulk_density_t_m3"] = self.bulk_density_t_m3
+        return out
+
+
+@dataclass
+class CameraCloud:
+    """One camera's raw cloud, in its own optical frame, with its pose in the silo."""
+
+    serial: str
+    points: np.ndarray  # (N, 3) float32, camera frame, metres
+    extrinsic: np.ndarray  # (4, 4) camera -> silo
+    intrinsics: dict[str, Any] | None = None
+    colors: np.ndarray | None = None  # (N, 3) uint8
+    extra: dict[str, Any] = field(default_factory=dict)  # firmware, gravity, frames, ...
+
+    def points_in_silo(self) -> np.ndarray:
+        rotation = self.extrinsic[:3, :3].astype(np.float32)
+        translation = self.extrinsic[:3, 3].astype(np.float32)
+        return self.points @ rotation.T + translation
+
+
+@dataclass
+class Scan:
+    scan_id: str
+    captured_at: str
+    silo_id: str
+    site: Site
+    cameras: list[CameraCloud]
+    reconstruction: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)  # truth, result, version, ...
+
+
+# ---------------------------------------------------------------- manifest schema
+
+
+class _Open(BaseModel):
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+
+
+class _Intrinsics(_Open):
+    width: int
+    height: int
+    fx: float
+    fy: float
+    ppx: float
+    ppy: float
+
+
+class _Camera(_Open):
+    serial: str = Field(min_length=1)
+    cloud: str
+    extrinsic: list[list[float]]
+    intrinsics: _Intrinsics | None = None
+
+    @field_validator("cloud")
+    @classmethod
+    def _plain_name(cls, name: str) -> str:
+        if not name or "/" in name or "\\" in name or name in (".", "..") or ".." in name:
+            raise ValueError(f"must be a plain file name inside the scan directory, got {name!r}")
+        return name
+
+    @field_validator("extrinsic")
+    @classmethod
+    def _rigid(cls, rows: list[list[float]]) -> list[list[float]]:
+        if len(rows) != 4 or any(len(r) != 4 for r in rows):
+            raise ValueError("must be a 4x4 matrix (4 rows of 4 numbers)")
+        problem = rigid_transform_problem(np.asarray(rows, dtype=float))
+        if problem:
+            raise ValueError(f"not a rigid transform: {problem}")
+        return rows
+
+
+class _Site(_Open):
+    region: list[tuple[float, float]]
+    floor_z: float
+    ceiling_z: float | None = None
+    base: Literal["floor", "boundary"] = "floor"
+    bulk_density_t_m3: float | None = Field(default=None, gt=0)
+
+    @field_validator("region")
+    @classmethod
+    def _simple(cls, region: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        problem = check_polygon(np.asarray(region, dtype=float).reshape(-1, 2))
+        if problem:
+            raise ValueError(problem)
+        return region
+
+
+class _Manifest(_Open):
+    format: Literal["silo-scan/1"]
+    scan_id: str = Field(pattern=r"^[A-Za-z0-9._-]+$")
+    captured_at: str
+    silo_id: str = Field(min_length=1)
+    site: _Site
+    reconstruction: dict[str, Any] = Field(default_factory=dict)
+    cameras: list[_Camera] = Field(min_length=1)
+
+    @field_validator("captured_at")
+    @classmethod
+    def _rfc3339(cls, value: str) -> str:
+        try:
+            datetime.fromisoformat(value.replace("Z", "+00:00"))
+        except ValueError:
+            raise ValueError(f"must be an RFC 3339 time, got {value!r}") from None
+        return value
+
+
+# ---------------------------------------------------------------- PLY
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+}  # fmt: skip
+
+
+def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a binary little-endian PLY cloud: (points (N,3) float32, colours (N,3) uint8 | None)."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise ScanError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    body = memoryview(raw)[end + len(b"end_header\n") :]
+    count, props, in_vertex, fmt = None, [], False, None
+    for line in header[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = " ".join(words[1:])
+        elif words[0] == "element":
+            if words[1] != "vertex" or count is not None:
+                raise ScanError(f"{path}: only one 'element vertex' is supported, got '{line}'")
+            try:
+                count = int(words[2])
+            except (IndexError, ValueError):
+                raise ScanError(f"{path}: bad element line '{line}'") from None
+            in_vertex = True
+        elif words[0] == "property" and in_vertex:
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise ScanError(f"{path}: unsupported property '{line}'")
+            props.append((words[2], _PLY_TYPES[words[1]]))
+    if fmt != "binary_little_endian 1.0":
+        raise ScanError(f"{path}: format must be 'binary_little_endian 1.0', got {fmt!r}")
+    if count is None or count < 0:
+        raise ScanError(f"{path}: no 'element vertex N' in the header")
+    if [p for p, _ in props[:3]] != ["x", "y", "z"] or any(t != "<f4" for _, t in props[:3]):
+        raise ScanError(f"{path}: the first properties must be 'float x', 'float y', 'float z'")
+    dtype = np.dtype(props)
+    expected = count * dtype.itemsize
+    if len(body) != expected:
+        raise ScanError(
+            f"{path}: header says {count} points ({expected} bytes) but the body has "
+            f"{len(body)} bytes"
+        )
+    if count == 0:
+        raise ScanError(f"{path}: the cloud is empty (0 points)")
+    data = np.frombuffer(body, dtype=dtype, count=count)
+    if dtype.itemsize == 12:
+        points = data.view("<f4").reshape(count, 3).astype(np.float32)
+    else:
+        points = np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32)
+    bad = ~np.isfinite(points).all(axis=1)
+    if np.any(bad):
+        first = int(np.argmax(bad))
+        raise ScanError(f"{path}: {int(bad.sum())} points are NaN or infinite (first: #{first})")
+    names = dtype.names or ()
+    colors = None
+    if all(c in names for c in ("red", "green", "blue")):
+        colors = np.stack([data["red"], data["green"], data["blue"]], axis=1).astype(np.uint8)
+    return points, colors
+
+
+def write_ply(path: Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Write a binary little-endian PLY with float x y z (and uchar colours)."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    data = np.empty(len(points), dtype=fields)
+    data["x"], data["y"], data["z"] = points[:, 0], points[:, 1], points[:, 2]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += ["property float x", "property float y", "property float z"]
+    if colors is not None:
+        data["red"], data["green"], data["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header.append("end_header")
+    with open(path, "wb") as out:
+        out.write(("\n".join(header) + "\n").encode("ascii"))
+        out.write(data.tobytes())
+
+
+# ---------------------------------------------------------------- directory
+
+
+def read_manifest(directory: Path) -> dict[str, Any]:
+    """The raw manifest JSON, validated against silo-scan/1."""
+    path = directory / MANIFEST
+    if not directory.is_dir():
+        raise ScanError(f"{directory}: not a directory")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ScanError(f"{path}: missing (not a silo-scan/1 directory)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScanError(f"{path}: cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise ScanError(f"{path}: not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ScanError(f"{path}: must be a JSON object")
+    try:
+        _Manifest.model_validate(data)
+    except ValidationError as exc:
+        raise ScanError(describe_validation_error(exc, str(path)).splitlines()[0]) from None
+    return data
+
+
+def read_scan(directory: str | Path) -> Scan:
+    """Read and check a whole scan directory."""
+    directory = Path(directory)
+    data = read_manifest(directory)
+    manifest = _Manifest.model_validate(data)
+    site = Site(
+        region=np.asarray(manifest.site.region, dtype=float),
+        floor_z=manifest.site.floor_z,
+        ceiling_z=manifest.site.ceiling_z,
+        base=manifest.site.base,
+        bulk_density_t_m3=manifest.site.bulk_density_t_m3,
+    )
+    cameras = []
+    known = {"serial", "cloud", "extrinsic", "intrinsics"}
+    for raw_camera, camera in zip(data["cameras"], manifest.cameras, strict=True):
+        points, colors = read_ply(directory / camera.cloud)
+        cameras.append(
+            CameraCloud(
+                serial=camera.serial,
+                points=points,
+                extrinsic=np.asarray(camera.extrinsic, dtype=float),
+                intrinsics=raw_camera.get("intrinsics"),
+                colors=colors,
+                extra={k: v for k, v in raw_camera.items() if k not in known},
+            )
+        )
+    top = {"format", "scan_id", "captured_at", "silo_id", "site", "reconstruction", "cameras"}
+    return Scan(
+        scan_id=manifest.scan_id,
+        captured_at=manifest.captured_at,
+        silo_id=manifest.silo_id,
+        site=site,
+        cameras=cameras,
+        reconstruction=dict(manifest.reconstruction),
+        extra={k: v for k, v in data.items() if k not in top},
+    )
+
+
+def manifest_of(scan: Scan) -> dict[str, Any]:
+    cameras = []
+    for camera in scan.cameras:
+        entry: dict[str, Any] = {
+            "serial": camera.serial,
+            "cloud": f"{camera.serial}.ply",
+            "extrinsic": np.asarray(camera.extrinsic, dtype=float).tolist(),
+        }
+        if camera.intrinsics is not None:
+            entry["intrinsics"] = camera.intrinsics
+        entry.update(camera.extra)
+        cameras.append(entry)
+    return {
+        "format": FORMAT,
+        "scan_id": scan.scan_id,
+        "captured_at": scan.captured_at,
+        "silo_id": scan.silo_id,
+        "site": scan.site.to_json(),
+        "reconstruction": scan.reconstruction,
+        "cameras": cameras,
+        **scan.extra,
+    }
+
+
+def write_scan(scan: Scan, directory: str | Path) -> Path:
+    """Write `scan` as a new silo-scan/1 directory, atomically (temp dir, fsync, rename)."""
+    directory = Path(directory)
+    if directory.exists():
+        raise ScanError(f"{directory}: already exists; scans are never overwritten")
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
+    try:
+        for camera in scan.cameras:
+            write_ply(staging / f"{camera.serial}.ply", camera.points, camera.colors)
+        (staging / MANIFEST).write_text(json.dumps(manifest_of(scan), indent=2) + "\n")
+        for item in staging.iterdir():
+            with open(item, "rb") as handle:
+                os.fsync(handle.fileno())
+        os.rename(staging, directory)
+        dir_fd = os.open(directory.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return directory

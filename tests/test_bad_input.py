@@ -1,0 +1,205 @@
+"""Every bad scan directory and config gives one clear line naming the file, never a traceback."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+MANIFEST = "scan.json"
+
+
+def _edit_manifest(scan_dir: Path, change) -> None:
+    path = scan_dir / MANIFEST
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def _first_cloud(scan_dir: Path) -> Path:
+    return scan_dir / json.loads((scan_dir / MANIFEST).read_text())["cameras"][0]["cloud"]
+
+
+def _assert_clear_failure(result, *fragments: str) -> None:
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+    assert result.stdout == ""
+
+
+def _set(path: list, value):
+    def change(data):
+        target = data
+        for key in path[:-1]:
+            target = target[key]
+        target[path[-1]] = value
+
+    return change
+
+
+def _delete(path: list):
+    def change(data):
+        target = data
+        for key in path[:-1]:
+            target = target[key]
+        del target[path[-1]]
+
+    return change
+
+
+@pytest.mark.parametrize(
+    ("change", "fragments"),
+    [
+        (_delete(["scan_id"]), ["scan.json", "scan_id", "required"]),
+        (_delete(["site", "floor_z"]), ["site.floor_z", "required"]),
+        (_set(["site", "floor_z"], "low"), ["site.floor_z"]),
+        (_set(["format"], "silo-scan/2"), ["format"]),
+        (_set(["captured_at"], "yesterday"), ["captured_at", "RFC 3339"]),
+        (_set(["cameras", 0, "extrinsic", 0, 0], 2.0), ["cameras.0.extrinsic", "rigid"]),
+        (_set(["cameras", 0, "extrinsic", 1], [0, 1, 0]), ["cameras.0.extrinsic", "4x4"]),
+        (_set(["cameras", 0, "extrinsic", 3], [0, 0, 0.5, 1]), ["last row"]),
+        (_set(["cameras", 0, "cloud"], "../cam0.ply"), ["cameras.0.cloud", "plain file name"]),
+        (_set(["cameras", 0, "cloud"], "sub/cam0.ply"), ["cameras.0.cloud", "plain file name"]),
+        (_set(["site", "region"], [[0, 0], [1, 0]]), ["site.region", "at least 3"]),
+        (
+            _set(["site", "region"], [[0, 0], [1, 1], [1, 0], [0, 1]]),
+            ["site.region", "self-intersecting"],
+        ),
+        (_set(["cameras"], []), ["cameras"]),
+    ],
+)
+def test_bad_manifest_is_named(scan_dir: Path, change, fragments) -> None:
+    _edit_manifest(scan_dir, change)
+    _assert_clear_failure(run_cli("process", str(scan_dir), "--json"), *fragments)
+
+
+def test_non_finite_extrinsic(scan_dir: Path) -> None:
+    text = (scan_dir / MANIFEST).read_text()
+    data = json.loads(text)
+    data["cameras"][0]["extrinsic"][0][3] = 1e400  # json.dumps writes Infinity
+    (scan_dir / MANIFEST).write_text(json.dumps(data))
+    _assert_clear_failure(run_cli("process", str(scan_dir)), "extrinsic")
+
+
+def test_manifest_not_json(scan_dir: Path) -> None:
+    (scan_dir / MANIFEST).write_text("{not json")
+    _assert_clear_failure(run_cli("process", str(scan_dir)), "scan.json", "not valid JSON")
+
+
+def test_missing_directory(tmp_path: Path) -> None:
+    _assert_clear_failure(run_cli("process", str(tmp_path / "nope")), "nope", "not a directory")
+
+
+def test_missing_cloud_file(scan_dir: Path) -> None:
+    cloud = _first_cloud(scan_dir)
+    cloud.unlink()
+    _assert_clear_failure(run_cli("process", str(scan_dir)), cloud.name, "cannot read")
+
+
+def test_truncated_cloud(scan_dir: Path) -> None:
+    cloud = _first_cloud(scan_dir)
+    data = cloud.read_bytes()
+    cloud.write_bytes(data[: len(data) - 7])
+    _assert_clear_failure(run_cli("process", str(scan_dir)), cloud.name, "header says")
+
+
+def test_header_lies_about_count(scan_dir: Path) -> None:
+    cloud = _first_cloud(scan_dir)
+    data = cloud.read_bytes()
+    header_end = data.index(b"end_header\n")
+    header = data[:header_end].decode()
+    count = int(header.split("element vertex ")[1].split()[0])
+    header = header.replace(f"element vertex {count}", f"element vertex {count + 10}")
+    cloud.write_bytes(header.encode() + data[header_end:])
+    _assert_clear_failure(run_cli("process", str(scan_dir)), cloud.name, str(count + 10))
+
+
+@pytest.mark.parametrize(
+    ("body", "fragment"),
+    [
+        (b"garbage", "not a PLY"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+         b"property float z\nend_header\n0 0 0\n", "binary_little_endian"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty double x\n"
+         b"property double y\nproperty double z\nend_header\n" + bytes(24), "float x"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
+         b"property float y\nproperty float z\nend_header\n", "empty"),
+    ],
+)  # fmt: skip
+def test_malformed_cloud(scan_dir: Path, body: bytes, fragment: str) -> None:
+    cloud = _first_cloud(scan_dir)
+    cloud.write_bytes(body)
+    _assert_clear_failure(run_cli("process", str(scan_dir)), cloud.name, fragment)
+
+
+def test_nan_points(scan_dir: Path) -> None:
+    from silo_agent.scan import read_ply, write_ply
+
+    cloud = _first_cloud(scan_dir)
+    points, _ = read_ply(cloud)
+    points[5] = [np.nan, 0, 1]
+    points[9] = [0, np.inf, 1]
+    write_ply(cloud, points)
+    _assert_clear_failure(run_cli("process", str(scan_dir)), cloud.name, "2 points are NaN")
+
+
+# ---------------------------------------------------------------- configuration
+
+GOOD = """
+[silo]
+id = "silo-1"
+region = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
+floor_z = 0.0
+
+[[cameras]]
+serial = "A"
+source = "realsense"
+extrinsic = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+"""
+
+
+@pytest.mark.parametrize(
+    ("edit", "fragments"),
+    [
+        (lambda t: t.replace('id = "silo-1"', 'id = "silo 1"'), ["silo.id", "pattern"]),
+        (lambda t: t + "\n[mqtt]\nprot = 1\n", ["mqtt.prot", "unknown key"]),
+        (lambda t: t.replace("floor_z = 0.0", 'floor_z = "zero"'), ["silo.floor_z"]),
+        (lambda t: t.replace("[[0, 0, 0, 1]]", "[[0, 0, 0, 1]]").replace(
+            "[[1, 0, 0, 0]", "[[2, 0, 0, 0]"), ["cameras.0", "orthonormal"]),
+        (lambda t: t.replace("region = [[-2, -2], [2, -2], [2, 2], [-2, 2]]",
+                             "region = [[0, 0], [1, 1], [1, 0], [0, 1]]"),
+         ["silo.region", "self-intersecting"]),
+        (lambda t: t.replace('source = "realsense"', 'source = "playback"'),
+         ["cameras.0", "playback = FILE"]),
+        (lambda t: t.replace("[silo]", "[silo\n"), ["not valid TOML"]),
+    ],
+)  # fmt: skip
+def test_bad_config_names_file_and_key(tmp_path: Path, edit, fragments) -> None:
+    path = tmp_path / "agent.toml"
+    path.write_text(edit(GOOD))
+    result = run_cli("check-config", str(path))
+    assert result.returncode == 78
+    assert "Traceback" not in result.stderr
+    assert str(path) in result.stderr
+    for fragment in fragments:
+        assert fragment in result.stderr
+
+
+def test_example_config_is_valid() -> None:
+    example = Path(__file__).parents[1] / "config" / "silo-agent.example.toml"
+    result = run_cli("check-config", str(example))
+    assert result.returncode == 0, result.stderr
+
+
+def test_process_rejects_bad_config_before_reading_scan(tmp_path: Path) -> None:
+    path = tmp_path / "agent.toml"
+    path.write_text(GOOD.replace("floor_z = 0.0", "floor_z = 0.0\nceiling_z = -1.0"))
+    result = run_cli("process", str(tmp_path / "missing-scan"), "--config", str(path))
+    assert result.returncode == 78
+    assert "ceiling_z" in result.stderr
