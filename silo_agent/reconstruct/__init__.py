@@ -1,0 +1,303 @@
+"""BICM reconstruction: scan -> height map -> volume, mass, levels, coverage. Pure: no I/O.
+
+fuse + crop -> voxel down-sample -> clustered means per cell -> B-spline fill of empty cells
+-> slope correction -> integration over the region (cut cells weighted).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy import ndimage
+
+from silo_agent.config import Config, ReconstructionConfig
+from silo_agent.heightmap import HeightMap
+from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
+from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
+from silo_agent.reconstruct.grid import FusedCloud, Grid, fuse_and_crop
+from silo_agent.reconstruct.smooth import masked_smooth
+from silo_agent.reconstruct.volume import (
+    Levels,
+    base_surface,
+    integrate_denoised,
+    surface_levels,
+)
+from silo_agent.scan import Scan, Site
+
+if TYPE_CHECKING:
+    from silo_agent.detect import Robot
+    from silo_agent.detect.piles import Pile
+
+__all__ = ["Result", "reconstruct", "site_from_config"]
+
+DENOISE_SCALE_M = 0.20  # smoothing under the base clip (volume.integrate_denoised)
+EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted_cells)
+EDGE_DENSITY_RATIO = 0.5
+SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spikes)
+
+
+@dataclass
+class Result:
+    """Everything a scan's reconstruction says, ready for `process`, MQTT and audit."""
+
+    scan_id: str
+    method: str
+    grid_step_m: float
+    volume_m3: float | None
+    mass_t: float | None
+    coverage: float
+    surface: Levels | None  # silo-frame z
+    floor_z: float
+    valid: bool
+    invalid_reason: str | None
+    heightmap: HeightMap | None
+    cameras: list[str]
+    points: dict[str, int] = field(default_factory=dict)
+    parameters: dict[str, Any] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    piles: list[Pile] | None = None  # silo_agent.detect; None: detection did not run
+    robots: list[Robot] | None = None  # None: no YOLO model configured
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON object of `silo-agent process --json` (scan-format.md) and MQTT."""
+        surface = level = None
+        if self.surface is not None:
+            s = self.surface
+            surface = {"min_z": s.min, "mean_z": s.mean, "max_z": s.max}
+            level = {"min": s.min - self.floor_z, "mean": s.mean - self.floor_z,
+                     "max": s.max - self.floor_z}
+        return {
+            "scan_id": self.scan_id,
+            "method": self.method,
+            "volume_m3": self.volume_m3,
+            "mass_t": self.mass_t,
+            "coverage": self.coverage,
+            "grid_step_m": self.grid_step_m,
+            "surface": surface,
+            "level": level,
+            "valid": self.valid,
+            "invalid_reason": self.invalid_reason,
+            "cameras": self.cameras,
+            "points": self.points,
+            "parameters": self.parameters,
+            "timings_s": self.timings_s,
+            "piles": None if self.piles is None else [p.to_json() for p in self.piles],
+            "robots": None if self.robots is None else [r.to_json() for r in self.robots],
+        }
+
+    def describe(self) -> str:
+        """A few human-readable lines."""
+        lines = [f"scan      {self.scan_id}  ({self.method}, grid {self.grid_step_m * 100:g} cm)"]
+        if self.volume_m3 is None:
+            lines.append("volume    unknown")
+        else:
+            mass = f"   mass {self.mass_t:.3f} t" if self.mass_t is not None else ""
+            lines.append(f"volume    {self.volume_m3:.4f} m³{mass}")
+        lines.append(f"coverage  {self.coverage * 100:.1f} % of the region observed")
+        if self.surface is not None:
+            s, f = self.surface, self.floor_z
+            lines.append(
+                f"level     min {s.min - f:.3f}  mean {s.mean - f:.3f}  max {s.max - f:.3f}"
+                " m above floor"
+            )
+        lines.append("valid     yes" if self.valid else f"valid     NO: {self.invalid_reason}")
+        if self.piles is not None:
+            lines.append(f"piles     {len(self.piles)}")
+            for p in self.piles:
+                lines.append(
+                    f"  #{p.id:<3} {p.detector:<9} at ({p.centroid[0]:.2f}, {p.centroid[1]:.2f})"
+                    f"  peak {p.peak_height_m:.3f} m  footprint {p.footprint_m2:.2f} m²"
+                    f"  volume {p.volume_m3:.4f} m³"
+                )
+        for r in self.robots or []:
+            lines.append(f"robot     at ({r.x:.2f}, {r.y:.2f})  seen by {r.camera}")
+        total = sum(self.timings_s.values())
+        lines.append(f"time      {total * 1000:.0f} ms  ({len(self.cameras)} camera(s))")
+        return "\n".join(lines)
+
+
+def site_from_config(config: Config) -> Site:
+    s = config.silo
+    return Site(
+        region=np.asarray(s.region, dtype=float),
+        floor_z=s.floor_z,
+        ceiling_z=s.ceiling_z,
+        base=s.base,
+        bulk_density_t_m3=s.bulk_density_t_m3,
+    )
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self._last
+        self._last = now
+
+
+def _slope_corrected(grid: Grid, filled: np.ndarray, cells_x: np.ndarray, cells_y: np.ndarray,
+                     observed: np.ndarray) -> np.ndarray:
+    """Move each observed cell's mean from its points' centroid to the cell centre.
+
+    A cell's points rarely sit evenly over it (cameras see the near part of a slope more
+    densely); along the local slope that offset is a height bias, removed here.
+    """
+    smooth = ndimage.uniform_filter(filled, size=3, mode="nearest")
+    grad_y, grad_x = np.gradient(smooth, grid.step)
+    xs, ys = grid.centres()
+    shift = grad_x * (xs - cells_x) + grad_y * (ys - cells_y)
+    return np.where(observed, filled + np.nan_to_num(shift), filled)
+
+
+def _trusted_cells(grid: Grid, observed: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Observed cells whose height can be trusted as a boundary value for the fill.
+
+    At the edge of a camera's view or of a shadow, depth noise along the ray carries points
+    past the edge into cells that see nothing else; those cells hold only the points pushed
+    towards the camera and read high. They show as cells near a hole with far fewer points
+    than their neighbours, and are left to the fill instead.
+    """
+    band = max(1, round(EDGE_BAND_M / grid.step))
+    near_hole = ndimage.binary_dilation(~observed & (grid.inside > 0), iterations=band)
+    local = masked_smooth(counts.astype(float), observed, band / 2)
+    sparse = counts < EDGE_DENSITY_RATIO * np.nan_to_num(local)
+    return observed & ~(near_hole & sparse)
+
+
+def _without_spikes(
+    grid: Grid, filled: np.ndarray, observed: np.ndarray, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replace cells standing above a morphological opening of the surface by the opening.
+
+    Grain cannot stand in a column narrower than SPIKE_WIDTH_M; cells that do are points of a
+    wall or post carried into the region by depth noise, with no grain point beside them.
+    """
+    size = max(3, 2 * round(SPIKE_WIDTH_M / grid.step / 2) + 1)
+    region = grid.inside > 0
+    eroded = ndimage.minimum_filter(np.where(region, filled, np.inf), size=size)
+    opened = ndimage.maximum_filter(np.where(region, eroded, -np.inf), size=size)
+    spikes = region & (filled - opened > tolerance)
+    return np.where(spikes, opened, filled), observed & ~spikes
+
+
+def _excluding(fused: FusedCloud, discs: Sequence[tuple[float, float, float]]) -> FusedCloud:
+    """`fused` without the points inside any of the (x, y, radius) discs."""
+    from silo_agent.detect import points_outside
+
+    keep = points_outside(fused.points, discs)
+    return FusedCloud(fused.points[keep], fused.camera[keep], fused.cell[keep], fused.raw_count)
+
+
+def reconstruct(
+    scan: Scan,
+    settings: ReconstructionConfig,
+    site: Site | None = None,
+    exclude: Sequence[tuple[float, float, float]] = (),
+) -> Result:
+    """Run the configured method on `scan`; `site` overrides the scan's own site.
+
+    `exclude` lists silo-frame discs (x, y, radius) whose points are not grain (a leveling
+    robot found by the detector): they are dropped after fusing and the fill covers the hole.
+    """
+    site = site or scan.site
+    clock = _Clock()
+    grid = Grid.over(site.region, settings.grid_step_m)
+    fused = fuse_and_crop(scan.cameras, site, grid)
+    if exclude:
+        fused = _excluding(fused, exclude)
+    clock.lap("fuse_crop")
+    if settings.method != "bicm":
+        from silo_agent.reconstruct.baselines import baseline_heights
+
+        heights, observed, volume = baseline_heights(settings, fused, grid, site)
+        clock.lap(settings.method)
+        return _result(scan, site, settings, grid, fused, heights, observed, volume, {}, clock)
+
+    points, camera, cell = fused.points, fused.camera, fused.cell
+    if settings.voxel_size_m is not None:
+        points, camera = voxel_downsample(points, camera, settings.voxel_size_m)
+        row, col = grid.cell_index(points[:, 0], points[:, 1])
+        cell = row * grid.shape[1] + col
+        clock.lap("voxel_downsample")
+    cells = clustered_means(
+        points, camera, cell, grid, settings.cluster_eps_m, settings.cluster_min_points,
+        settings.max_clusters,
+    )  # fmt: skip
+    clock.lap("clustered_means")
+    observed = np.isfinite(cells.height) & (grid.inside > 0)
+    observed = _trusted_cells(grid, observed, cells.points)
+    parameters = {
+        "voxel_size_m": settings.voxel_size_m,
+        "cluster_eps_m": cells.eps_m,
+        "cluster_min_points": cells.min_points,
+        "max_clusters": settings.max_clusters,
+        "slope_correction": settings.slope_correction,
+        "fill": settings.fill,
+    }
+    if not np.any(observed):
+        return _result(scan, site, settings, grid, fused, None, observed, None, parameters, clock)
+    if settings.fill == "bspline":
+        filled = bspline_fill(cells.height, observed)
+    else:
+        filled = membrane_fill(cells.height, observed, grid.inside > 0)
+    filled, observed = _without_spikes(grid, filled, observed, cells.double_surface_m)
+    clock.lap("fill")
+    if settings.slope_correction:
+        filled = _slope_corrected(grid, filled, cells.centroid_x, cells.centroid_y, observed)
+        clock.lap("slope_correction")
+    heights = np.where(grid.inside > 0, filled, np.nan)
+    base = base_surface(grid, heights, site.base, site.floor_z)
+    volume = integrate_denoised(grid, heights, base, DENOISE_SCALE_M)
+    clock.lap("volume")
+    result = _result(
+        scan, site, settings, grid, fused, heights, observed, volume, parameters, clock
+    )
+    result.points["after_downsampling"] = len(points)
+    return result
+
+
+def _result(
+    scan: Scan, site: Site, settings: ReconstructionConfig, grid: Grid, fused: FusedCloud,
+    heights: np.ndarray | None, observed: np.ndarray, volume: float | None,
+    parameters: dict[str, Any], clock: _Clock,
+) -> Result:  # fmt: skip
+    region_area = float(np.sum(grid.inside))
+    coverage = float(np.sum(grid.inside * observed) / region_area)
+    valid, reason = True, None
+    if volume is None:
+        valid, reason = False, "no measured point inside the region"
+    elif coverage < settings.min_coverage:
+        valid = False
+        reason = f"coverage {coverage:.3f} below the minimum {settings.min_coverage}"
+    heightmap = surface = None
+    if heights is not None:
+        heightmap = HeightMap(
+            grid.origin, grid.step, heights.astype(np.float32), observed, grid.inside
+        )
+        if np.any(np.isfinite(heights)):
+            surface = surface_levels(grid, heights)
+    density = site.bulk_density_t_m3
+    return Result(
+        scan_id=scan.scan_id,
+        method=settings.method,
+        grid_step_m=settings.grid_step_m,
+        volume_m3=volume,
+        mass_t=volume * density if volume is not None and density is not None else None,
+        coverage=coverage,
+        surface=surface,
+        floor_z=site.floor_z,
+        valid=valid,
+        invalid_reason=reason,
+        heightmap=heightmap,
+        cameras=[c.serial for c in scan.cameras],
+        points={"raw": fused.raw_count, "in_region": len(fused.points)},
+        parameters=parameters,
+        timings_s=clock.laps,
+    )

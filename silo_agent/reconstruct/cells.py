@@ -1,0 +1,205 @@
+"""Clustered means per cell (paper 2.4, Algorithm 1) and voxel down-sampling (paper 2.3.3).
+
+Everything runs on one sorted int64 key per point: (cell, height, camera). Sorting it puts
+every cell's points together in height order, so 1-D density clustering is a segment
+reduction with no loop over cells; the key carries all the sorted data (no argsort, no gather).
+
+Two refinements over the paper, both measured in bench/accuracy.py:
+- a cluster's centroid is the mean over cameras of each camera's mean height in it, so a
+  camera that happens to see a cell more densely does not pull the surface towards itself;
+- voxel down-sampling is optional (off by default): equal weight per voxel quantises heights
+  on a global bin phase and biased flat floors by up to half a voxel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from silo_agent.reconstruct.grid import Grid
+
+Z_QUANTUM_M = 1e-4  # height resolution inside the sort key
+Z_MIN_BITS = 20  # room for the height bits whatever the span (2^20 x 0.1 mm = 105 m)
+CAMERA_BITS = 8  # up to 256 cameras
+RELATIVE_MIN_POINTS = 0.25  # default: a cluster needs 1/4 of the points of the cell's largest
+EPS_NOISE_FACTOR = 3.0  # default eps: 3 x the typical spread of one surface in a cell
+EPS_MIN_M, EPS_MAX_M = 0.01, 0.10
+CORE_DENSITY = 0.2  # a height bin is core at 1/5 of its cell's densest bin (MinPts, relative)
+DOUBLE_SURFACE_FACTOR, DOUBLE_SURFACE_MIN_M = 3.0, 0.10  # how far apart two views may disagree
+
+
+@dataclass(frozen=True)
+class CellHeights:
+    """Per-cell results of the clustered-means step (arrays shaped like the grid)."""
+
+    height: np.ndarray  # float64, NaN where no points
+    centroid_x: np.ndarray  # mean x of the cell's points (for the slope correction)
+    centroid_y: np.ndarray
+    points: np.ndarray  # int, points per cell
+    clusters: np.ndarray  # int, clusters kept per cell (0, 1 .. max_clusters)
+    eps_m: float
+    min_points: int | None  # None: relative to each cell's largest cluster
+    double_surface_m: float  # how far apart two views of one surface may be
+
+
+def voxel_downsample(
+    points: np.ndarray, camera: np.ndarray, size: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Paper 2.3.3: one point per occupied voxel (per camera), at the centroid of its points."""
+    voxel = np.floor(points / size).astype(np.int64)
+    voxel -= voxel.min(axis=0)
+    span = voxel.max(axis=0) + 1
+    key = ((voxel[:, 0] * span[1] + voxel[:, 1]) * span[2] + voxel[:, 2]) << CAMERA_BITS
+    key |= camera.astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    starts = np.flatnonzero(np.diff(key, prepend=-1))
+    counts = np.diff(np.append(starts, len(key)))
+    sums = np.add.reduceat(points[order].astype(np.float64), starts, axis=0)
+    return (sums / counts[:, None]).astype(np.float32), camera[order][starts]
+
+
+def _segment_ids(starts: np.ndarray, total: int) -> np.ndarray:
+    """Segment number of every element, given the sorted start offsets of the segments."""
+    marks = np.zeros(total, dtype=np.int64)
+    marks[starts[1:]] = 1
+    return np.cumsum(marks)
+
+
+def clustered_means(
+    points: np.ndarray,
+    camera: np.ndarray,
+    cell: np.ndarray,
+    grid: Grid,
+    eps_m: float | None,
+    min_points: int | None,
+    max_clusters: int,
+) -> CellHeights:
+    rows, cols = grid.shape
+    n_cells = rows * cols
+    if len(points) == 0:
+        nan = np.full(grid.shape, np.nan)
+        zeros = np.zeros(grid.shape, dtype=int)
+        return CellHeights(nan, nan, nan, zeros, zeros, eps_m or 0.0, min_points, 0.0)
+
+    z = points[:, 2]
+    z0 = float(z.min())
+    z_q = np.round((z - z0) * (1.0 / Z_QUANTUM_M)).astype(np.int64)
+    z_bits = max(Z_MIN_BITS, int(z_q.max()).bit_length())  # histogram bins live in these bits
+    if max(1, n_cells.bit_length()) + z_bits + CAMERA_BITS > 63:
+        raise ValueError(
+            f"height span {float(z.max()) - z0:.1f} m over {n_cells} cells does not fit the "
+            "sort key; crop the cloud (ceiling_z) or use a coarser grid"
+        )
+    key = (cell << (z_bits + CAMERA_BITS)) | (z_q << CAMERA_BITS) | camera.astype(np.int64)
+    key.sort()
+    s_cell = key >> (z_bits + CAMERA_BITS)
+    s_cam = key & ((1 << CAMERA_BITS) - 1)
+    s_z = z0 + ((key >> CAMERA_BITS) & ((1 << z_bits) - 1)) * Z_QUANTUM_M
+
+    # ---- eps: the density radius; a gap larger than this in a cell splits clusters
+    per_cell = np.bincount(s_cell, minlength=n_cells)
+    if eps_m is None:
+        crowded = per_cell >= 3
+        relative = s_z - z0
+        count = per_cell[crowded]
+        total = np.bincount(s_cell, relative, n_cells)[crowded]
+        squares = np.bincount(s_cell, relative * relative, n_cells)[crowded]
+        variance = np.maximum(squares - total * total / count, 0.0) / (count - 1)
+        typical = float(np.sqrt(np.median(variance))) if np.any(crowded) else 0.0
+        eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
+
+    # ---- 1-D density clustering (DBSCAN on a height histogram): bins of eps/2 per cell; a
+    # bin is core when its 3-bin neighbourhood holds CORE_DENSITY x the cell's densest one
+    bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
+    bin_shift = CAMERA_BITS + bin_bits
+    bin_key = key >> bin_shift  # (cell, height bin)
+    b_start = np.flatnonzero(np.diff(bin_key, prepend=-1))
+    b_n = np.diff(np.append(b_start, len(key)))
+    b_key = bin_key[b_start]
+    b_cell = s_cell[b_start]
+    same_cell_prev = np.zeros(len(b_key), dtype=bool)
+    same_cell_prev[1:] = b_cell[1:] == b_cell[:-1]
+    below = same_cell_prev & (b_key - np.roll(b_key, 1) == 1)
+    above = np.roll(below, -1)
+    above[-1] = False
+    density = b_n + np.where(below, np.roll(b_n, 1), 0) + np.where(above, np.roll(b_n, -1), 0)
+    cell_of_bins = np.flatnonzero(~same_cell_prev)
+    bins_per_cell = np.diff(np.append(cell_of_bins, len(b_key)))
+    peak = np.repeat(np.maximum.reduceat(density, cell_of_bins), bins_per_cell)
+    core = density >= CORE_DENSITY * peak
+
+    # clusters: runs of core bins in a cell, split by a gap of more than eps
+    c_bin = np.flatnonzero(core)
+    bin_width = Z_QUANTUM_M * (1 << bin_bits)
+    gap_bins = max(1, int(np.ceil(eps_m / bin_width)))
+    double_surface = max(DOUBLE_SURFACE_FACTOR * eps_m, DOUBLE_SURFACE_MIN_M)
+    new_cluster = np.ones(len(c_bin), dtype=bool)
+    new_cluster[1:] = (b_cell[c_bin[1:]] != b_cell[c_bin[:-1]]) | (
+        b_key[c_bin[1:]] - b_key[c_bin[:-1]] > gap_bins
+    )
+    cluster_of_core_bin = np.cumsum(new_cluster) - 1
+    n_clusters = int(new_cluster.sum())
+    # a surface is thin: a cluster taller than a double surface is something standing on the
+    # grain (a wall seen through depth noise, a post) and only its lowest part is grain
+    bottom = b_key[c_bin[new_cluster]][cluster_of_core_bin]
+    thin = b_key[c_bin] - bottom <= double_surface / bin_width
+    bin_cluster = np.full(len(b_key), -1, dtype=np.int64)
+    bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
+    point_cluster = np.repeat(bin_cluster, b_n)
+    member = point_cluster >= 0
+    p_cluster, p_cam, p_z = point_cluster[member], s_cam[member], s_z[member]
+    c_n = np.bincount(p_cluster, minlength=n_clusters)
+    c_cell = b_cell[c_bin[new_cluster]]
+
+    # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster
+    n_cams = int(s_cam.max()) + 1
+    pair = p_cluster * n_cams + p_cam
+    size = n_clusters * n_cams
+    pair_n = np.bincount(pair, minlength=size)
+    present = np.flatnonzero(pair_n)
+    pair_mean = np.bincount(pair, p_z, size)[present] / pair_n[present]
+    pair_cluster = present // n_cams
+    c_z = np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
+        pair_cluster, minlength=n_clusters
+    )
+
+    # ---- noise: clusters too small, absolutely or relative to the cell's largest cluster
+    cell_start = np.flatnonzero(np.diff(c_cell, prepend=-1))
+    group_size = np.diff(np.append(cell_start, n_clusters))
+    largest = np.repeat(np.maximum.reduceat(c_n, cell_start), group_size)
+    if min_points is None:
+        valid = c_n >= np.ceil(RELATIVE_MIN_POINTS * largest)
+    else:
+        # a cell whose clusters are all small keeps its largest: sparse cells still count
+        valid = (c_n >= min_points) | ((c_n == largest) & (largest < min_points))
+    # a second surface is a misaligned view of the first, not something standing on the
+    # grain (a wall, a robot, a spout): it must lie close above the lowest valid cluster
+    lowest = np.repeat(
+        np.minimum.reduceat(np.where(valid, c_z, np.inf), cell_start), group_size
+    )
+    valid &= c_z - lowest <= double_surface
+
+    # ---- keep the `max_clusters` largest valid clusters of each cell
+    order = np.lexsort((c_z, -c_n, ~valid, c_cell))
+    rank = np.empty(n_clusters, dtype=np.int64)
+    rank[order] = np.arange(n_clusters) - np.repeat(cell_start, group_size)
+    keep = valid & (rank < max_clusters)
+
+    kept = np.bincount(c_cell, keep.astype(float), n_cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        height = np.bincount(c_cell, c_z * keep, n_cells) / kept
+        centroid_x = np.bincount(cell, points[:, 0], n_cells) / per_cell
+        centroid_y = np.bincount(cell, points[:, 1], n_cells) / per_cell
+    height[kept == 0] = np.nan
+    return CellHeights(
+        height=height.reshape(grid.shape),
+        centroid_x=centroid_x.reshape(grid.shape),
+        centroid_y=centroid_y.reshape(grid.shape),
+        points=per_cell.reshape(grid.shape),
+        clusters=kept.astype(int).reshape(grid.shape),
+        eps_m=eps_m,
+        min_points=min_points,
+        double_surface_m=double_surface,
+    )

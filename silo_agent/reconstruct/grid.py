@@ -1,0 +1,82 @@
+"""The reconstruction grid over the site's region, and fusing/cropping clouds onto it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from silo_agent.geometry import cell_fractions
+from silo_agent.scan import CameraCloud, Site
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Cells of `step` metres covering the region's bounding box; row = y, col = x."""
+
+    origin: tuple[float, float]  # outer corner of cell [0, 0] (minimum x and y)
+    step: float
+    shape: tuple[int, int]  # (rows, cols)
+    inside: np.ndarray  # fraction of each cell inside the region polygon
+
+    @classmethod
+    def over(cls, region: np.ndarray, step: float) -> Grid:
+        low, high = region.min(axis=0), region.max(axis=0)
+        cols = max(1, math.ceil((high[0] - low[0]) / step - 1e-9))
+        rows = max(1, math.ceil((high[1] - low[1]) / step - 1e-9))
+        origin = (float(low[0]), float(low[1]))
+        return cls(origin, step, (rows, cols), cell_fractions(region, origin, step, (rows, cols)))
+
+    @property
+    def cell_area(self) -> float:
+        return self.step * self.step
+
+    def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) of points; callers keep only those inside `valid_cells`."""
+        col = np.floor((x - self.origin[0]) / self.step).astype(np.int64)
+        row = np.floor((y - self.origin[1]) / self.step).astype(np.int64)
+        return row, col
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        rows, cols = self.shape
+        xs = self.origin[0] + (np.arange(cols) + 0.5) * self.step
+        ys = self.origin[1] + (np.arange(rows) + 0.5) * self.step
+        return np.meshgrid(xs, ys)
+
+
+@dataclass(frozen=True)
+class FusedCloud:
+    """Points of all cameras in the silo frame, cropped to the region and under the ceiling."""
+
+    points: np.ndarray  # (N, 3) float32
+    camera: np.ndarray  # (N,) uint8 index into the scan's cameras
+    cell: np.ndarray  # (N,) int64 flat cell index (row * cols + col)
+    raw_count: int
+
+
+def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCloud:
+    """Paper 2.3.1: transform every cloud by its extrinsic, crop the ceiling and the region."""
+    rows, cols = grid.shape
+    inside_flat = grid.inside.ravel() > 0
+    kept_points, kept_camera, kept_cell = [], [], []
+    raw = 0
+    for index, camera in enumerate(cameras):
+        points = camera.points_in_silo()
+        raw += len(points)
+        keep = np.ones(len(points), dtype=bool)
+        if site.ceiling_z is not None:
+            keep &= points[:, 2] <= site.ceiling_z
+        row, col = grid.cell_index(points[:, 0], points[:, 1])
+        keep &= (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        cell = row * cols + col
+        keep[keep] &= inside_flat[cell[keep]]
+        kept_points.append(points[keep])
+        kept_cell.append(cell[keep])
+        kept_camera.append(np.full(int(keep.sum()), index, dtype=np.uint8))
+    if not kept_points:
+        empty = np.empty((0, 3), np.float32)
+        return FusedCloud(empty, np.empty(0, np.uint8), np.empty(0, np.int64), 0)
+    return FusedCloud(
+        np.concatenate(kept_points), np.concatenate(kept_camera), np.concatenate(kept_cell), raw
+    )
