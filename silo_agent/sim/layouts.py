@@ -1,0 +1,77 @@
+"""Camera positions: the paper's A1-A8 and a wall-mounted layout; calibration-error injection.
+
+A1-A8 go counter-clockwise around a square seen from above, A1 at the middle of the -y side
+(then A3 at +x, A5 at +y, A7 at -x; the even ones are corners). This reproduces the relative
+positions of the paper's Appendix A (A3 to the right of A1 and 2.6 m ahead, A5 opposite).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from silo_agent.sim.scenes import Scene
+
+LAYOUTS = ("paper", "wall")
+VIEWS: dict[str, tuple[int, int]] = {
+    "A1": (0, -1), "A2": (1, -1), "A3": (1, 0), "A4": (1, 1),
+    "A5": (0, 1), "A6": (-1, 1), "A7": (-1, 0), "A8": (-1, -1),
+}  # fmt: skip
+PAPER_SQUARE_M = 5.0
+PAPER_CAMERA_Z = 1.0
+WALL_INSET_M = 0.05  # a wall camera's lens in front of the wall
+
+
+def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera -> silo transform of a level camera (no roll) at `position` aimed at `target`.
+
+    Optical frame: +z towards the target, +x to the right, +y down.
+    """
+    forward = np.asarray(target, float) - np.asarray(position, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([right, down, forward])
+    pose[:3, 3] = position
+    return pose
+
+
+def view_pose(scene: Scene, view: str, layout: str | None = None) -> np.ndarray:
+    """Nominal camera -> silo transform of a named view (`layout` defaults to the scene's)."""
+    if view not in VIEWS:
+        raise ValueError(f"unknown view {view!r}; known: {', '.join(VIEWS)}")
+    layout = layout or scene.layout
+    offset = np.asarray(VIEWS[view], dtype=float)
+    target = np.asarray(scene.target, dtype=float)
+    if layout == "paper":
+        xy = target[:2] + offset * PAPER_SQUARE_M / 2
+        z = scene.site.floor_z + PAPER_CAMERA_Z
+    elif layout == "wall":
+        xy = offset * (scene.wall_half_m - WALL_INSET_M)
+        z = scene.wall_camera_z
+    else:
+        raise ValueError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
+    surface = float(scene.height(np.array(xy[0]), np.array(xy[1])))
+    if z <= surface + 0.1:
+        raise ValueError(f"view {view} of the {layout!r} layout would be buried in the "
+                         f"{scene.name!r} scene's grain (try layout 'wall')")
+    return look_at(np.array([xy[0], xy[1], z]), target)
+
+
+def axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rodrigues rotation matrix."""
+    axis = axis / np.linalg.norm(axis)
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * cross + (1 - np.cos(angle_rad)) * cross @ cross
+
+
+def perturb(pose: np.ndarray, degrees: float, metres: float,
+            rng: np.random.Generator) -> np.ndarray:
+    """The camera's true pose when its calibration is off by exactly `degrees` (about a random
+    axis through the camera) and `metres` (in a random direction)."""
+    axis, direction = rng.standard_normal(3), rng.standard_normal(3)
+    true = pose.copy()
+    true[:3, :3] = axis_angle(axis, np.radians(degrees)) @ pose[:3, :3]
+    true[:3, 3] += metres * direction / np.linalg.norm(direction)
+    return true
