@@ -1,0 +1,69 @@
+"""Capture: one raw cloud per configured camera, cameras one after another.
+
+Every source (live D455, .db3 playback, simulator) implements `Camera`; `open_camera` picks the
+implementation by `source` and imports it lazily, so pyrealsense2/open3d load only when used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from silo_agent.config import CameraConfig, Config
+from silo_agent.scan import CameraCloud
+
+
+class CaptureError(Exception):
+    """A camera could not deliver a cloud; the message names the camera and the cause."""
+
+
+class Camera(Protocol):
+    serial: str
+
+    def capture(self) -> CameraCloud:
+        """One aggregated depth capture as a raw cloud in the camera frame. Raises CaptureError."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class CameraFailure:
+    serial: str
+    error: str
+
+
+@dataclass
+class CaptureResult:
+    clouds: list[CameraCloud] = field(default_factory=list)
+    failures: list[CameraFailure] = field(default_factory=list)
+
+    @property
+    def degraded(self) -> bool:
+        return bool(self.failures)
+
+
+def open_camera(camera: CameraConfig, config: Config) -> Camera:
+    """The `Camera` for one `[[cameras]]` entry."""
+    if camera.source == "sim":
+        from silo_agent.capture.sim import SimCamera
+
+        return SimCamera(camera, config)
+    from silo_agent.capture.realsense import RealSenseCamera
+
+    return RealSenseCamera(camera, config)
+
+
+def capture_all(config: Config) -> CaptureResult:
+    """Capture every configured camera in turn; a failing camera is recorded, not fatal."""
+    result = CaptureResult()
+    for camera_config in config.cameras:
+        try:
+            camera = open_camera(camera_config, config)
+            try:
+                result.clouds.append(camera.capture())
+            finally:
+                camera.close()
+        except CaptureError as exc:
+            result.failures.append(CameraFailure(camera_config.serial, str(exc)))
+    return result

@@ -1,0 +1,53 @@
+"""`source = "sim"` cameras: the simulator behind the same `Camera` protocol as a live D455,
+so the daemon runs end to end on a laptop (config/demo.toml).
+
+The cloud carries the configured (nominal) extrinsic; `[simulation] calib_error_*` moves the
+pose the scene is really rendered from, as a badly calibrated camera would.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from silo_agent.capture import CaptureError
+from silo_agent.config import CameraConfig, Config
+from silo_agent.scan import CameraCloud
+from silo_agent.sim.layouts import view_pose
+from silo_agent.sim.scenes import make_scene
+from silo_agent.sim.simulate import SimRig, plan_view
+
+
+@lru_cache(maxsize=2)
+def _rig(scene: str, grain: str) -> SimRig:
+    """One world per scene for all cameras and all scans: building it is the costly part."""
+    return SimRig(make_scene(scene, grain))
+
+
+class SimCamera:
+    """A virtual D455 of `[simulation]`, placed by its `view` or its configured extrinsic."""
+
+    def __init__(self, camera: CameraConfig, config: Config) -> None:
+        self.serial = camera.serial
+        sim = config.simulation
+        try:
+            rig = _rig(sim.scene, sim.grain)
+            nominal = camera.extrinsic_matrix()
+            if nominal is None:
+                if camera.view is None:
+                    raise ValueError("a sim camera needs view = 'A1'..'A8' or an extrinsic")
+                nominal = view_pose(rig.scene, camera.view, sim.layout)
+        except ValueError as exc:
+            raise CaptureError(f"camera {camera.serial}: {exc}") from None
+        self._rig = rig
+        self._seed = sim.seed
+        self._color = camera.color
+        self._view = plan_view(
+            camera.view or camera.serial, camera.serial, nominal, sim.seed,
+            (sim.calib_error_deg, sim.calib_error_m), camera.width, camera.height,
+        )
+
+    def capture(self) -> CameraCloud:
+        return self._rig.cloud(self._view, self._seed, self._color)
+
+    def close(self) -> None:
+        """Nothing to release: the rendered world is shared and cached."""
