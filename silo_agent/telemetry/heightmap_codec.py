@@ -1,0 +1,158 @@
+"""Binary wire format of `P/heightmap` ("SLHM" version 1), small enough to retain on a broker.
+
+Everything a robot needs to place a cell is in the header, so nobody has to guess the origin,
+the row order or what "unknown" looks like (the usual complaints about grid maps).
+
+Layout, little-endian:
+
+    offset size  field
+    0      4     magic b"SLHM"
+    4      1     version = 1
+    5      1     height encoding: 1 = uint16 millimetres above z_offset_m
+    6      1     filter: 1 = per-row horizontal difference modulo 2**16 (undo with a cumsum)
+    7      1     flags: bit 0 = row 0 is the minimum-y row, bit 1 = origin is the outer corner
+    8      4     rows (uint32), cells along +y
+    12     4     cols (uint32), cells along +x
+    16     8     step_m (float64), cell size
+    24     8     origin_x_m (float64), silo-frame x of the outer (min x, min y) corner of cell [0,0]
+    32     8     origin_y_m (float64)
+    40     8     z_offset_m (float64), silo-frame z of height code 0
+    48     2     unknown code (uint16) = 65535: no surface (outside the region)
+    50     2     frame id length F (uint16)
+    52     2     scan id length S (uint16)
+    54     4     heights blob length H (uint32)
+    58     4     observed blob length O (uint32)
+    62     4     inside blob length I (uint32)
+    66     F     frame id, UTF-8 ("silo": the silo frame, z up, metres)
+           S     scan id, UTF-8
+           H     zlib(uint16[rows, cols] after the filter), row-major
+           O     zlib(numpy.packbits(observed, bitorder="big")), row-major, 1 = measured,
+                 0 = filled by interpolation or unknown
+           I     zlib(uint8[rows, cols] round(inside * 255)): fraction of the cell inside the region
+
+Heights are rounded to the millimetre, so a decoded height is within 0.5 mm of the published
+one; unknown cells decode to NaN.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import zlib
+
+import numpy as np
+
+from silo_agent.heightmap import HeightMap
+
+MAGIC = b"SLHM"
+VERSION = 1
+ENCODING_UINT16_MM = 1
+FILTER_ROW_DELTA = 1
+FLAG_ROW0_MIN_Y = 1
+FLAG_ORIGIN_OUTER_CORNER = 2
+UNKNOWN = 0xFFFF
+FRAME_ID = "silo"
+HEADER = struct.Struct("<4sBBBBIIddddHHHIII")
+MAX_RANGE_M = (UNKNOWN - 1) / 1000.0
+
+
+class HeightMapFormatError(ValueError):
+    """Bytes that are not a height map this decoder understands."""
+
+
+def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> bytes:
+    """Encode a height map; raises ValueError if its heights span more than 65.534 m."""
+    heights = np.asarray(hm.heights, dtype=np.float64)
+    rows, cols = heights.shape
+    known = np.isfinite(heights)
+    if known.any():
+        z_offset = math.floor(float(heights[known].min()) * 1000.0) / 1000.0
+        span = float(heights[known].max()) - z_offset
+        if span > MAX_RANGE_M:
+            raise ValueError(f"heights span {span:.3f} m, the format holds {MAX_RANGE_M} m")
+    else:
+        z_offset = 0.0
+    codes = np.full((rows, cols), UNKNOWN, dtype=np.uint16)
+    codes[known] = np.rint((heights[known] - z_offset) * 1000.0).astype(np.uint16)
+    filtered = codes.copy()
+    filtered[:, 1:] = codes[:, 1:] - codes[:, :-1]  # uint16 arithmetic wraps: modulo 2**16
+    heights_blob = zlib.compress(filtered.astype("<u2").tobytes(), 9)
+    observed_blob = zlib.compress(
+        np.packbits(np.asarray(hm.observed, dtype=bool).ravel(), bitorder="big").tobytes(), 9
+    )
+    inside = np.clip(np.rint(np.asarray(hm.inside, dtype=np.float64) * 255.0), 0, 255)
+    inside_blob = zlib.compress(inside.astype(np.uint8).tobytes(), 9)
+    frame = frame_id.encode()
+    scan = scan_id.encode()
+    header = HEADER.pack(
+        MAGIC,
+        VERSION,
+        ENCODING_UINT16_MM,
+        FILTER_ROW_DELTA,
+        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER,
+        rows,
+        cols,
+        float(hm.step),
+        float(hm.origin[0]),
+        float(hm.origin[1]),
+        z_offset,
+        UNKNOWN,
+        len(frame),
+        len(scan),
+        len(heights_blob),
+        len(observed_blob),
+        len(inside_blob),
+    )
+    return b"".join([header, frame, scan, heights_blob, observed_blob, inside_blob])
+
+
+def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
+    """Decode to (height map, scan id, frame id)."""
+    if len(data) < HEADER.size or data[:4] != MAGIC:
+        raise HeightMapFormatError("not an SLHM height map (bad magic or too short)")
+    (
+        _magic, version, encoding, filt, flags, rows, cols, step, ox, oy, z_offset,
+        unknown, f_len, s_len, h_len, o_len, i_len,
+    ) = HEADER.unpack_from(data)
+    if version != VERSION or encoding != ENCODING_UINT16_MM or filt != FILTER_ROW_DELTA:
+        raise HeightMapFormatError(
+            f"unsupported SLHM version {version} / encoding {encoding} / filter {filt}"
+        )
+    if flags != FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER:
+        raise HeightMapFormatError(f"unsupported SLHM flags {flags:#x}")
+    pos = HEADER.size
+    frame = data[pos : pos + f_len].decode()
+    pos += f_len
+    scan_id = data[pos : pos + s_len].decode()
+    pos += s_len
+    blobs = []
+    for length in (h_len, o_len, i_len):
+        blobs.append(data[pos : pos + length])
+        pos += length
+    if pos != len(data):
+        raise HeightMapFormatError(f"length mismatch: header says {pos} bytes, got {len(data)}")
+    try:
+        raw = [zlib.decompress(b) for b in blobs]
+    except zlib.error as exc:
+        raise HeightMapFormatError(f"corrupt compressed layer: {exc}") from None
+    n = rows * cols
+    if len(raw[0]) != 2 * n or len(raw[1]) != (n + 7) // 8 or len(raw[2]) != n:
+        raise HeightMapFormatError("layer sizes do not match rows x cols")
+    filtered = np.frombuffer(raw[0], dtype="<u2").reshape(rows, cols)
+    codes = np.cumsum(filtered, axis=1, dtype=np.uint16)
+    heights = np.where(codes == unknown, np.nan, z_offset + codes / 1000.0)
+    observed = np.unpackbits(np.frombuffer(raw[1], dtype=np.uint8), count=n, bitorder="big")
+    inside = np.frombuffer(raw[2], dtype=np.uint8).reshape(rows, cols) / 255.0
+    hm = HeightMap(
+        origin=(ox, oy),
+        step=step,
+        heights=heights,
+        observed=observed.reshape(rows, cols).astype(bool),
+        inside=inside,
+    )
+    return hm, scan_id, frame
+
+
+def decode_heightmap(data: bytes) -> HeightMap:
+    """Decode `P/heightmap` bytes to a HeightMap (heights to the millimetre, NaN unknown)."""
+    return decode_heightmap_with_ids(data)[0]

@@ -1,0 +1,178 @@
+"""Sparkplug B 3.0 edge node: the metrics, and the NBIRTH / NDATA / NDEATH payloads.
+
+Pure payload building; the MQTT session (will, bdSeq, seq, rebirth, STATE) lives in mqtt.py.
+The node keeps the current value of every metric so that any NBIRTH (first, after a
+reconnect, on a rebirth request) declares all of them with their datatypes and values.
+NDATA payloads are stored in the outbox without `seq`; `finalize` adds it when sent, and marks
+metrics `is_historical` when they are replayed after an outage.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from google.protobuf.message import DecodeError
+
+from silo_agent.telemetry import sparkplug_b_pb2 as pb
+from silo_agent.telemetry.payloads import ALARM_TYPES
+
+NAMESPACE = "spBv1.0"
+REBIRTH = "Node Control/Rebirth"
+BD_SEQ = "bdSeq"
+
+INT = {pb.Int8, pb.Int16, pb.Int32, pb.UInt8, pb.UInt16, pb.UInt32}
+LONG = {pb.Int64, pb.UInt64, pb.DateTime}
+
+# metric name -> datatype; the result metrics, in the order NBIRTH lists them
+RESULT_METRICS: dict[str, int] = {
+    "Inventory/Volume m3": pb.Double,
+    "Inventory/Mass t": pb.Double,
+    "Inventory/Level Min m": pb.Double,
+    "Inventory/Level Mean m": pb.Double,
+    "Inventory/Level Max m": pb.Double,
+    "Inventory/Coverage": pb.Double,
+    "Inventory/Valid": pb.Boolean,
+    "Inventory/Degraded": pb.Boolean,
+    "Scan/Last Id": pb.String,
+    "Scan/Time": pb.DateTime,
+}
+
+
+def now_ms() -> int:
+    return int(time.time() * 1000)
+
+
+def iso_to_ms(moment: str) -> int:
+    return int(datetime.fromisoformat(moment.replace("Z", "+00:00")).timestamp() * 1000)
+
+
+def alarm_metric(alarm_type: str) -> str:
+    return f"Alarms/{alarm_type}"
+
+
+def camera_metric(serial: str) -> str:
+    return f"Cameras/{serial}/State"
+
+
+@dataclass(frozen=True)
+class Topics:
+    group_id: str
+    edge_node_id: str
+
+    def node(self, message_type: str) -> str:
+        return f"{NAMESPACE}/{self.group_id}/{message_type}/{self.edge_node_id}"
+
+    @staticmethod
+    def state(host_id: str) -> str:
+        return f"{NAMESPACE}/STATE/{host_id}"
+
+
+def _set_value(metric: Any, datatype: int, value: Any) -> None:
+    metric.datatype = datatype
+    if value is None:
+        metric.is_null = True
+    elif datatype in INT:
+        metric.int_value = int(value) & 0xFFFFFFFF
+    elif datatype in LONG:
+        metric.long_value = int(value) & 0xFFFFFFFFFFFFFFFF
+    elif datatype == pb.Float:
+        metric.float_value = float(value)
+    elif datatype == pb.Double:
+        metric.double_value = float(value)
+    elif datatype == pb.Boolean:
+        metric.boolean_value = bool(value)
+    elif datatype in (pb.String, pb.Text, pb.UUID):
+        metric.string_value = str(value)
+    else:
+        raise ValueError(f"datatype {datatype} is not used by silo-agent")
+
+
+class SparkplugNode:
+    """Metric definitions and current values of this edge node."""
+
+    def __init__(self, version: str, camera_serials: Iterable[str]) -> None:
+        self.datatypes: dict[str, int] = {"Node Info/Software Version": pb.String}
+        self.values: dict[str, Any] = {"Node Info/Software Version": version}
+        self.datatypes.update(RESULT_METRICS)
+        for alarm_type in ALARM_TYPES:
+            self.datatypes[alarm_metric(alarm_type)] = pb.Boolean
+            self.values[alarm_metric(alarm_type)] = False
+        for serial in camera_serials:
+            self.datatypes[camera_metric(serial)] = pb.String
+            self.values[camera_metric(serial)] = "unknown"
+
+    def birth(self, bd_seq: int) -> bytes:
+        """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric."""
+        payload = pb.Payload(timestamp=now_ms(), seq=0)
+        ts = payload.timestamp
+        _set_value(payload.metrics.add(name=BD_SEQ, timestamp=ts), pb.UInt64, bd_seq)
+        _set_value(payload.metrics.add(name=REBIRTH, timestamp=ts), pb.Boolean, False)
+        for name, datatype in self.datatypes.items():
+            metric = payload.metrics.add(name=name, timestamp=ts)
+            _set_value(metric, datatype, self.values.get(name))
+        return payload.SerializeToString()
+
+    @staticmethod
+    def death(bd_seq: int) -> bytes:
+        """NDEATH (the will of the Sparkplug session): only the bdSeq, no seq."""
+        payload = pb.Payload(timestamp=now_ms())
+        _set_value(payload.metrics.add(name=BD_SEQ), pb.UInt64, bd_seq)
+        return payload.SerializeToString()
+
+    def _data(self, values: dict[str, Any], ts: int) -> tuple[bytes, bool]:
+        """NDATA without seq; also returns whether a new metric needs a rebirth first."""
+        payload = pb.Payload(timestamp=now_ms())
+        new_metric = False
+        for name, value in values.items():
+            if name not in self.datatypes:
+                self.datatypes[name] = pb.Boolean if name.startswith("Alarms/") else pb.String
+                new_metric = True
+            self.values[name] = value
+            _set_value(payload.metrics.add(name=name, timestamp=ts), self.datatypes[name], value)
+        return payload.SerializeToString(), new_metric
+
+    def data_from_result(self, summary: dict) -> tuple[bytes, bool]:
+        level = summary.get("level") or {}
+        captured = iso_to_ms(summary["captured_at"])
+        values = {
+            "Inventory/Volume m3": summary.get("volume_m3"),
+            "Inventory/Mass t": summary.get("mass_t"),
+            "Inventory/Level Min m": level.get("min"),
+            "Inventory/Level Mean m": level.get("mean"),
+            "Inventory/Level Max m": level.get("max"),
+            "Inventory/Coverage": summary.get("coverage"),
+            "Inventory/Valid": summary.get("valid"),
+            "Inventory/Degraded": summary.get("degraded", False),
+            "Scan/Last Id": summary["scan_id"],
+            "Scan/Time": captured,
+        }
+        return self._data(values, captured)
+
+    def data_from_alarm(self, event: dict) -> tuple[bytes, bool]:
+        return self._data({alarm_metric(event["type"]): event["state"] == "raised"}, now_ms())
+
+    def data_from_cameras(self, states: dict[str, str]) -> tuple[bytes, bool]:
+        return self._data({camera_metric(s): v for s, v in states.items()}, now_ms())
+
+
+def finalize(raw: bytes, seq: int, historical: bool) -> bytes:
+    """Give a stored NDATA its session seq; replayed data is flagged `is_historical`."""
+    payload = pb.Payload.FromString(raw)
+    payload.seq = seq
+    if historical:
+        for metric in payload.metrics:
+            metric.is_historical = True
+    return payload.SerializeToString()
+
+
+def is_rebirth_request(raw: bytes) -> bool:
+    """An NCMD asking for `Node Control/Rebirth` = true."""
+    try:
+        payload = pb.Payload.FromString(raw)
+    except DecodeError:
+        return False
+    return any(m.name == REBIRTH and m.boolean_value for m in payload.metrics)

@@ -1,0 +1,132 @@
+"""Sparkplug B, decoded by an independent implementation (pysparkplug), never by our encoder."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+import pysparkplug as ps
+from mqtt_support import SILO, summary
+
+NODE = f"spBv1.0/silos/{{}}/{SILO}"
+
+
+def births(col) -> list[ps.NBirth]:
+    return [ps.NBirth.decode(m.payload) for m in col.on(NODE.format("NBIRTH"))]
+
+
+def metric_map(payload) -> dict[str, ps.Metric]:
+    return {m.name: m for m in payload.metrics}
+
+
+def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
+    broker, telemetry_factory, collector_factory
+):
+    col = collector_factory(broker, ["spBv1.0/#"])
+    tel = telemetry_factory(broker, sparkplug={"enabled": True})
+    col.wait_topic(NODE.format("NBIRTH"))
+    birth = births(col)[0]
+    assert birth.seq == 0
+    metrics = metric_map(birth)
+    assert metrics["bdSeq"].value == 0 and metrics["bdSeq"].datatype == ps.DataType.UINT64
+    assert metrics["Node Control/Rebirth"].datatype == ps.DataType.BOOLEAN
+    expected = {
+        "Inventory/Volume m3": ps.DataType.DOUBLE, "Inventory/Mass t": ps.DataType.DOUBLE,
+        "Inventory/Level Min m": ps.DataType.DOUBLE, "Inventory/Level Mean m": ps.DataType.DOUBLE,
+        "Inventory/Level Max m": ps.DataType.DOUBLE, "Inventory/Coverage": ps.DataType.DOUBLE,
+        "Scan/Time": ps.DataType.DATETIME, "Scan/Last Id": ps.DataType.STRING,
+        "Alarms/collapse": ps.DataType.BOOLEAN, "Alarms/level_high": ps.DataType.BOOLEAN,
+        "Cameras/cam-a/State": ps.DataType.STRING, "Cameras/cam-b/State": ps.DataType.STRING,
+    }
+    assert {k: metrics[k].datatype for k in expected} == expected
+    assert metrics["Inventory/Volume m3"].is_null  # nothing measured yet
+    assert metrics["Cameras/cam-a/State"].value == "unknown"
+
+    tel.publish_result(summary())
+    tel.publish_alarm({"type": "level_high", "state": "raised", "severity": "warning",
+                       "scan_id": summary()["scan_id"], "value": 1.4, "threshold": 1.3})
+    col.wait_topic(NODE.format("NDATA"), 2)
+    data = [ps.NData.decode(m.payload, birth=birth) for m in col.on(NODE.format("NDATA"))]
+    assert [d.seq for d in data] == [1, 2]
+    values = metric_map(data[0])
+    assert values["Inventory/Volume m3"].value == 12.345
+    assert values["Inventory/Level Max m"].value == 1.4
+    assert values["Scan/Last Id"].value == summary()["scan_id"]
+    assert values["Scan/Time"].timestamp == 1795312800000  # captured_at, ms
+    assert not values["Inventory/Volume m3"].is_historical
+    assert metric_map(data[1])["Alarms/level_high"].value is True
+
+    # rebirth on NCMD: a new NBIRTH (seq 0, same bdSeq) carrying the current values
+    ncmd = ps.NCmd(timestamp=int(time.time() * 1000), metrics=(
+        ps.Metric(timestamp=None, name="Node Control/Rebirth", datatype=ps.DataType.BOOLEAN,
+                  value=True),))
+    col.publish(NODE.format("NCMD"), ncmd.encode(include_dtypes=True))
+    col.wait_topic(NODE.format("NBIRTH"), 2)
+    rebirth = metric_map(births(col)[1])
+    assert births(col)[1].seq == 0 and rebirth["bdSeq"].value == 0
+    assert rebirth["Inventory/Volume m3"].value == 12.345
+    assert rebirth["Alarms/level_high"].value is True
+    tel.set_status(cameras={"cam-a": ("ok", None)})
+    col.wait_topic(NODE.format("NDATA"), 3)
+    after = ps.NData.decode(col.on(NODE.format("NDATA"))[2].payload)
+    assert after.seq == 1 and metric_map(after)["Cameras/cam-a/State"].value == "ok"
+
+    # clean stop: NDEATH with this session's bdSeq; the next process uses bdSeq + 1
+    tel.stop()
+    death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[0].payload)
+    assert death.bd_seq_metric.value == 0
+    telemetry_factory(broker, sparkplug={"enabled": True})
+    col.wait_topic(NODE.format("NBIRTH"), 3)
+    assert metric_map(births(col)[2])["bdSeq"].value == 1
+
+
+def test_ndeath_is_the_will_and_replayed_data_is_historical(
+    broker, telemetry_factory, collector_factory
+):
+    col = collector_factory(broker, ["spBv1.0/#"])
+    tel = telemetry_factory(broker, sparkplug={"enabled": True}, start=False)
+    tel.publish_result(summary())  # queued before any connection: replayed later
+    time.sleep(0.01)
+    tel.start()
+    col.wait_topic(NODE.format("NDATA"))
+    replayed = ps.NData.decode(col.on(NODE.format("NDATA"))[0].payload)
+    assert all(m.is_historical for m in replayed.metrics)
+
+    # the Sparkplug connection dies without DISCONNECT: the broker sends the will NDEATH,
+    # the agent reconnects with the next bdSeq
+    spb_link = tel._links[1]
+    spb_link.client.socket().shutdown(socket.SHUT_RDWR)
+    death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[0].payload)
+    assert death.bd_seq_metric.value == 0
+    col.wait_topic(NODE.format("NBIRTH"), 2)
+    assert [metric_map(b)["bdSeq"].value for b in births(col)] == [0, 1]
+    tel.publish_result(summary("silo-t-live"))
+    col.wait_topic(NODE.format("NDATA"), 2)
+    live = ps.NData.decode(col.on(NODE.format("NDATA"))[1].payload)
+    assert live.seq == 1 and not any(m.is_historical for m in live.metrics)
+
+
+def test_waits_for_the_primary_host(broker, telemetry_factory, collector_factory):
+    col = collector_factory(broker, ["spBv1.0/#"])
+    tel = telemetry_factory(broker, sparkplug={"enabled": True, "primary_host_id": "scada"})
+    tel.publish_result(summary())
+    time.sleep(1.0)
+    assert not col.on(NODE.format("NBIRTH")) and not col.on(NODE.format("NDATA"))
+    now = int(time.time() * 1000)
+    col.client.publish("spBv1.0/STATE/scada", json.dumps({"online": True, "timestamp": now}),
+                       qos=1, retain=True)
+    col.wait_topic(NODE.format("NBIRTH"))
+    col.wait_topic(NODE.format("NDATA"))
+    # host goes offline: NDEATH, new session, no birth until the host is back
+    col.client.publish("spBv1.0/STATE/scada",
+                       json.dumps({"online": False, "timestamp": now + 1}), qos=1, retain=True)
+    death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[0].payload)
+    assert death.bd_seq_metric.value == 0
+    time.sleep(0.8)
+    assert len(col.on(NODE.format("NBIRTH"))) == 1
+    col.client.publish("spBv1.0/STATE/scada",
+                       json.dumps({"online": True, "timestamp": now + 2}), qos=1, retain=True)
+    col.wait_topic(NODE.format("NBIRTH"), 2)
+    assert metric_map(births(col)[1])["bdSeq"].value == 1
+    assert tel._thread.is_alive()
