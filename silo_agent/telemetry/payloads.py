@@ -163,6 +163,7 @@ class AlarmPayload(_Payload):
     )
     area_m2: float | None = Field(default=None, ge=0, description="collapse: affected area")
     depth_m: float | None = Field(default=None, description="collapse: deepest drop")
+    volume_m3: float | None = Field(default=None, ge=0, description="collapse: volume lost")
     value: float | None = Field(default=None, description="measured value that triggered it")
     threshold: float | None = None
 
