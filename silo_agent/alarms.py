@@ -45,7 +45,7 @@ class Inputs:
     cache_full: bool = False
     baseline: HeightMap | None = None  # collapse baseline's map, if there is one
     baseline_scan_id: str | None = None
-    previous_volume_m3: float | None = None
+    previous_volume_m3: float | None = None  # default: the state's last valid volume
 
 
 @dataclass(frozen=True)
@@ -119,24 +119,27 @@ def noise_floor(baseline: HeightMap, new: HeightMap, both: np.ndarray) -> float:
 
 def find_collapses(baseline: HeightMap, new: HeightMap, depth_m: float, min_area_m2: float,
                    noise_k: float) -> list[Collapse]:
-    """Regions (8-connected) observed in both maps where the new surface is lower than the
-    baseline by more than max(depth_m, noise_k x noise sigma), at least `min_area_m2` large,
-    largest first. The difference is median-filtered (3x3) first so single noisy cells neither
-    make nor break a region."""
+    """Regions (8-connected) where the new surface is lower than the baseline by more than
+    max(depth_m, noise_k x noise sigma), largest first. The decision rests on the cells
+    observed in both maps: a region needs `min_area_m2` of them; its footprint, depth and lost
+    volume then include the filled cells within it (a hole in one view is still the funnel).
+    The difference is median-filtered (3x3) first so single noisy cells neither make nor
+    break a region."""
     if baseline.heights.shape != new.heights.shape or baseline.step != new.step:
         raise ValueError("baseline and new height maps are on different grids")
-    both = (baseline.observed & new.observed & (new.inside > 0)
-            & np.isfinite(baseline.heights) & np.isfinite(new.heights))  # fmt: skip
+    known = np.isfinite(baseline.heights) & np.isfinite(new.heights) & (new.inside > 0)
+    both = known & baseline.observed & new.observed
     if not np.any(both):
         return []
     threshold = max(depth_m, noise_k * noise_floor(baseline, new, both))
-    drop = np.where(both, baseline.heights - new.heights, 0.0).astype(float)
+    drop = np.where(known, baseline.heights.astype(float) - new.heights, 0.0)
     drop = ndimage.median_filter(drop, size=3)
-    labels, count = ndimage.label(both & (drop > threshold), structure=np.ones((3, 3)))
+    labels, count = ndimage.label(known & (drop > threshold), structure=np.ones((3, 3)))
     if count == 0:
         return []
     index = np.arange(1, count + 1)
     cell_area = new.step**2 * new.inside
+    observed_areas = ndimage.sum(cell_area * both, labels, index)
     areas = ndimage.sum(cell_area, labels, index)
     depths = ndimage.maximum(drop, labels, index)
     lost = ndimage.sum(drop * cell_area, labels, index)
@@ -146,7 +149,7 @@ def find_collapses(baseline: HeightMap, new: HeightMap, depth_m: float, min_area
     found = [
         Collapse((float(cx[i]), float(cy[i])), float(areas[i]), float(depths[i]),
                  float(lost[i]), float(threshold))
-        for i in range(count) if areas[i] >= min_area_m2
+        for i in range(count) if observed_areas[i] >= min_area_m2
     ]  # fmt: skip
     return sorted(found, key=lambda c: -c.area_m2)
 
@@ -268,6 +271,8 @@ def evaluate(
 ) -> tuple[list[dict[str, Any]], AlarmState]:
     """Events (`raised` / `cleared`, only on a change) and the state for the next scan."""
     detectors = DETECTORS if detectors is None else detectors
+    if inputs.previous_volume_m3 is None:
+        inputs = replace(inputs, previous_volume_m3=state.last_volume_m3)
     events: list[dict[str, Any]] = []
     active = dict(state.active)
     if cfg.enabled:

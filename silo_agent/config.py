@@ -230,6 +230,10 @@ class SimulationConfig(Strict):
     vary_noise: bool = Field(
         default=False, description="new sensor noise every scan, as a real camera gives"
     )
+    capture_s: float = Field(
+        default=0.0, ge=0, le=600,
+        description="seconds each camera's capture takes (a D455's warm-up and frames: ~1.5 s)",
+    )
     grain: Literal["wheat", "corn", "soybeans", "rice"] = "wheat"
     seed: int = 0
     layout: Literal["paper", "wall"] = "paper"

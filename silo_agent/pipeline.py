@@ -213,7 +213,6 @@ class Pipeline:
             ceiling_z=config.silo.ceiling_z, max_z=surface.get("max_z"),
             failed_cameras=failed, cache_full=cache_full, baseline=self._baseline(),
             baseline_scan_id=self.config.alarms.baseline_scan_id or self.state.baseline_scan_id,
-            previous_volume_m3=self.state.last_volume_m3,
         )
         events, state = evaluate(self.state, inputs, config.alarms)
         t = lap("alarms", t)

@@ -7,6 +7,7 @@ pose the scene is really rendered from, as a badly calibrated camera would.
 
 from __future__ import annotations
 
+import time
 from functools import lru_cache
 
 from silo_agent.capture import CaptureError
@@ -46,12 +47,15 @@ class SimCamera:
         self._rig = rig
         self._seed = sim.seed + (scan_number if sim.vary_noise else 0)
         self._color = camera.color
+        self._capture_s = sim.capture_s
         self._view = plan_view(  # the pose error stays: it is the camera's, not the scan's
             camera.view or camera.serial, camera.serial, nominal, sim.seed,
             (sim.calib_error_deg, sim.calib_error_m), camera.width, camera.height,
         )
 
     def capture(self) -> CameraCloud:
+        if self._capture_s:  # as long as a real camera's warm-up and frames
+            time.sleep(self._capture_s)
         return self._rig.cloud(self._view, self._seed, self._color)
 
     def close(self) -> None:
