@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from silo_agent.alarms import (
     AlarmState,
@@ -73,6 +74,24 @@ def test_noise_alone_never_raises_a_collapse():
         for _ in range(10):
             assert find_collapses(surface(rng, sigma=sigma), surface(rng, sigma=sigma),
                                   0.10, 0.25, 5.0) == []
+
+
+def correlated(rng: np.random.Generator, sigma: float) -> HeightMap:
+    """Flat grain with depth error correlated over ~0.25 m (the D455's is partly correlated,
+    and a recalibrated or warmed-up camera shifts whole patches): blobs, not speckle."""
+    hm = surface(rng, sigma=0.005)
+    blobs = ndimage.gaussian_filter(rng.normal(0, 1, hm.heights.shape), 0.25 / STEP)
+    blobs *= sigma / blobs.std()
+    return HeightMap(hm.origin, STEP, (hm.heights + blobs).astype(np.float32), hm.observed,
+                     hm.inside)
+
+
+def test_correlated_noise_raises_nothing_thanks_to_the_noise_floor():
+    rng = np.random.default_rng(12)
+    pairs = [(correlated(rng, 0.04), correlated(rng, 0.04)) for _ in range(10)]
+    assert all(find_collapses(a, b, 0.10, 0.25, 5.0) == [] for a, b in pairs)
+    # without the noise floor (k = 0) the same blobs pass for collapses
+    assert sum(bool(find_collapses(a, b, 0.10, 0.25, 0.0)) for a, b in pairs) >= 3
 
 
 def test_noise_floor_tracks_the_maps_noise():
