@@ -1,0 +1,245 @@
+"""`silo-agent run` end to end: a real subprocess on simulated cameras, the test's own mosquitto
+(never 1883), a unix socket standing in for systemd. Schedules, on-request scans, single
+flight, signals, the will and the outbox across a SIGKILL, collapse alarms on a scene that
+changes, retention and replay of what the daemon cached."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from datetime import datetime
+from pathlib import Path
+
+from agent_support import BASE, Daemon, NotifySocket, write_config
+from mqtt_broker import free_port
+from mqtt_support import validate_json
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+REPLIES = "test/replies"
+counter = itertools.count()
+
+
+def request(col, payload: bytes) -> bytes:
+    """Publish a scan request with a response topic and fresh correlation data."""
+    correlation = f"corr-{next(counter)}".encode()
+    props = Properties(PacketTypes.PUBLISH)
+    props.ResponseTopic = REPLIES
+    props.CorrelationData = correlation
+    col.publish(f"{BASE}/cmd/scan", payload, props)
+    return correlation
+
+
+def replies(col, correlation: bytes, count: int = 1, timeout: float = 30) -> list[dict]:
+    col.wait_for(lambda ms: sum(m.topic == REPLIES and m.properties.CorrelationData == correlation
+                                for m in ms) >= count, timeout)  # fmt: skip
+    return [validate_json(m.payload) for m in col.on(REPLIES)
+            if m.properties.CorrelationData == correlation]  # fmt: skip
+
+
+def stamp(entry: dict) -> float:
+    return datetime.fromisoformat(entry["timestamp"].replace("Z", "+00:00")).timestamp()
+
+
+def idle(agent: Daemon, timeout: float = 30) -> None:
+    """Wait until every started scan has finished."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        log = agent.log()
+        started = sum(e.get("event") == "scan started" for e in log)
+        ended = sum(e.get("event") in ("scan finished", "scan failed") for e in log)
+        if started == ended:
+            return
+        time.sleep(0.05)
+    raise AssertionError("the agent stayed busy")
+
+
+def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    notify = NotifySocket(tmp_path / "notify.sock")
+    metrics_port = free_port()
+    config = tmp_path / "agent.toml"
+    write_config(config, broker.port, tmp_path, schedule={"interval_s": 2, "scan_at_start": True},
+                 simulation={"capture_s": 0.2}, metrics={"enabled": True, "port": metrics_port})
+    col = collector_factory(broker, [f"{BASE}/#", REPLIES])
+    agent = Daemon(config, tmp_path,
+                   env={"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "1000000"})
+    try:
+        # --- scheduled: one at start, then every 2 s
+        starts = agent.wait_log("scan started", 3, timeout=40)
+        gaps = [stamp(b) - stamp(a) for a, b in itertools.pairwise(starts[:3])]
+        assert all(1.6 < g < 2.6 for g in gaps[1:]), gaps
+        col.wait_topic(f"{BASE}/scan", 3)
+        status = validate_json(col.on(f"{BASE}/status")[-1].payload)
+        assert status["state"] == "online"
+
+        # --- reload a valid config: no schedule any more, slower captures
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False},
+                     simulation={"capture_s": 1.0},
+                     metrics={"enabled": True, "port": metrics_port})
+        agent.signal(signal.SIGHUP)
+        agent.wait_log("config reloaded")
+        idle(agent)
+        before = len(agent.wait_log("scan started"))
+
+        # --- on request: accepted with our correlation data, later done with the scan id
+        first = request(col, b'{"request_id": "r-1"}')
+        (accepted,) = replies(col, first)
+        assert accepted["status"] == "accepted" and accepted["request_id"] == "r-1"
+        agent.wait_log("scan started", before + 1)
+        busy = request(col, b'{"request_id": "r-2"}')  # while r-1's scan captures
+        (refused,) = replies(col, busy)
+        done = replies(col, first, 2)[1]
+        assert done["status"] == "done" and done["request_id"] == "r-1"
+        assert refused["status"] == "error" and refused["accepted"] is False
+        assert "busy" in refused["error"] and refused["scan_id"] == done["scan_id"]
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
+                                    and json.loads(m.payload)["scan_id"] == done["scan_id"]
+                                    for m in ms))  # fmt: skip
+        time.sleep(2.5)  # the old 2 s schedule is gone: no scan starts by itself
+        assert len(agent.log()) and len(agent.wait_log("scan started")) == before + 1
+
+        # --- a bad command gets an error reply, the agent carries on
+        (bad,) = replies(col, request(col, b"{not json"))
+        assert bad["status"] == "error" and "invalid JSON" in bad["error"]
+
+        # --- metrics
+        idle(agent)
+        text = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=5) \
+            .read().decode()  # fmt: skip
+        assert 'silo_agent_scans_total{outcome="ok"} 4.0' in text
+        assert 'silo_agent_stage_duration_seconds_count{stage="capture"} 4.0' in text
+        assert 'silo_agent_camera_up{serial="sim-A2"} 1.0' in text
+        assert "silo_agent_last_volume_m3 4" in text  # ~43.2 m³ of flat grain
+        assert "silo_agent_outbox_pending" in text
+
+        # --- SIGHUP with a bad config: rejected, the old one stays
+        config.write_text(config.read_text() + "\n[bogus]\nkey = 1\n")
+        agent.signal(signal.SIGHUP)
+        (rejected,) = agent.wait_log("config reload rejected, keeping the running config")
+        assert "bogus: unknown key" in rejected["error"]
+        third = request(col, b'{"request_id": "r-3"}')
+        assert [r["status"] for r in replies(col, third, 2)] == ["accepted", "done"]
+
+        # --- SIGTERM: `stopped`, exit 0
+        agent.signal(signal.SIGTERM)
+        assert agent.wait(20) == 0
+    finally:
+        agent.kill()
+        notify.close()
+    col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
+                                and json.loads(m.payload)["state"] == "stopped" for m in ms))
+    fields = notify.fields()
+    assert fields[0] == "READY=1"
+    assert fields.index("STOPPING=1") > fields.index("READY=1")
+    assert any(f.startswith("STATUS=last scan silo-d-") and "m³" in f for f in fields)
+    pings = [t for t, m in notify.messages if m == "WATCHDOG=1"]
+    assert len(pings) >= 10
+    assert max(b - a for a, b in itertools.pairwise(pings)) < 0.9  # every 0.5 s, half of 1 s
+
+
+def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                          schedule={"scan_at_start": False})
+    col = collector_factory(broker, [f"{BASE}/#"])
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("agent started")
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
+                                    and json.loads(m.payload)["state"] == "online" for m in ms))
+        agent.signal(signal.SIGKILL)
+        agent.wait()
+        col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
+                     == "offline")  # the Last Will
+
+        broker.kill()  # the broker is down while the agent scans
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": True})
+        agent = Daemon(config, tmp_path)
+        (finished,) = agent.wait_log("scan finished", timeout=40)
+        agent.signal(signal.SIGKILL)
+        agent.wait()
+        pending = finished["scan_id"]
+        assert not any(json.loads(m.payload).get("scan_id") == pending
+                       for m in col.on(f"{BASE}/scan"))  # fmt: skip
+
+        broker.start()
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False})
+        agent = Daemon(config, tmp_path)
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
+                                    and json.loads(m.payload)["scan_id"] == pending for m in ms),
+                     timeout=30)  # fmt: skip
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/volume"
+                                    and json.loads(m.payload)["scan_id"] == pending for m in ms))
+        agent.signal(signal.SIGTERM)
+        assert agent.wait(20) == 0
+    finally:
+        agent.kill()
+
+
+def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    sequence = ["flat", "flat", "crater", "crater", "flat", "flat"]
+    max_bytes = 6_000_000  # about three scans of two 424x240 clouds
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                          schedule={"interval_s": 0.2, "scan_at_start": True},
+                          simulation={"sequence": sequence}, audit={"max_bytes": max_bytes})
+    col = collector_factory(broker, [f"{BASE}/#"])
+    agent = Daemon(config, tmp_path, "--scans", str(len(sequence)))
+    try:
+        assert agent.wait(90) == 0
+    finally:
+        agent.kill()
+    scan_ids = [e["scan_id"] for e in agent.log() if e.get("event") == "scan finished"]
+    assert len(scan_ids) == len(sequence)
+    assert agent.out_path.read_text().startswith(f"scan      {scan_ids[-1]}")  # printed result
+
+    col.wait_for(lambda ms: sum(m.topic == f"{BASE}/alarm" for m in ms) >= 2)
+    time.sleep(0.5)  # anything else that would come
+    events = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
+    assert [(e["type"], e["state"], e["scan_id"]) for e in events] == [
+        ("collapse", "raised", scan_ids[2]),  # the funnel opened
+        ("collapse", "cleared", scan_ids[4]),  # and was filled again
+    ]  # and the unchanged scans (noise differs scan to scan) raised nothing
+    raised = events[0]
+    x, y = raised["position"]
+    assert ((x - 0.4) ** 2 + (y + 0.3) ** 2) ** 0.5 < 0.2  # the crater scene's funnel centre
+    assert raised["depth_m"] > 0.3 and raised["area_m2"] > 1.0 and raised["severity"] == "critical"
+    retained = validate_json(col.on(f"{BASE}/alarm/collapse")[-1].payload)
+    assert retained["state"] == "cleared"
+
+    # the cache stayed within its bound and kept the collapse baseline while it was in use
+    scans = tmp_path / "scans"
+    kept = sorted(p.name for p in scans.iterdir() if (p / "scan.json").is_file())
+    assert len(kept) < len(sequence)
+    assert sum(f.stat().st_size for f in scans.rglob("*") if f.is_file()
+               and f.parent != scans) <= max_bytes  # fmt: skip
+    state = json.loads((scans / "alarm-state.json").read_text())
+    assert state["baseline_scan_id"] == scan_ids[-1] and state["baseline_scan_id"] in kept
+
+    # replay: the same result, bit for bit; a tampered result is caught
+    last = scans / scan_ids[-1]
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "replay", scan_ids[-1], "--config",
+                          str(config)], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "identical" in run.stdout
+    published = json.loads((last / "result.json").read_text())
+    assert published["volume_m3"] == json.loads(col.on(f"{BASE}/volume")[-1].payload)[
+        "volume_m3"]  # what was kept is what was published
+    published["volume_m3"] = math.nextafter(published["volume_m3"], math.inf)  # one ulp off
+    (last / "result.json").write_text(json.dumps(published))
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "replay", str(last)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1
+    assert "volume_m3: published" in run.stdout
+
+    listing = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "list", "--config",
+                              str(config)], capture_output=True, text=True, timeout=60)
+    assert listing.returncode == 0
+    assert [line.split()[0] for line in listing.stdout.splitlines()[:-1]] == kept
