@@ -243,3 +243,94 @@ def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
                               str(config)], capture_output=True, text=True, timeout=60)
     assert listing.returncode == 0
     assert [line.split()[0] for line in listing.stdout.splitlines()[:-1]] == kept
+
+
+def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                          schedule={"scan_at_start": False, "scan_timeout_s": 1.5,
+                                    "stop_timeout_s": 0.5},
+                          simulation={"capture_s": 2.0})  # two cameras: 4 s, past the deadline
+    col = collector_factory(broker, [f"{BASE}/#", REPLIES])
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("agent started")
+        first = request(col, b'{"request_id": "slow"}')
+        accepted, failed = replies(col, first, 2)
+        assert accepted["status"] == "accepted"
+        assert failed["status"] == "error" and "deadline" in failed["error"]
+        report = next(validate_json(m.payload) for m in col.on(f"{BASE}/scan")
+                      if json.loads(m.payload)["scan_id"] == failed["scan_id"])  # fmt: skip
+        assert report["valid"] is False and "deadline of 1.5 s exceeded" in report["invalid_reason"]
+        # the abandoned scan still holds the cameras: busy until its capture returns
+        (busy,) = replies(col, request(col, b'{"request_id": "next"}'))
+        assert busy["status"] == "error" and busy["scan_id"] == failed["scan_id"]
+        agent.wait_log("scan started")
+        idle_until = time.monotonic() + 10
+        while time.monotonic() < idle_until:  # the stuck thread returns and frees the cameras
+            (reply,) = replies(col, request(col, b'{"request_id": "again"}'))
+            if reply["status"] == "accepted":
+                break
+            time.sleep(0.3)
+        assert reply["status"] == "accepted"
+        agent.wait_log("scan started", 2)
+        t0 = time.monotonic()
+        agent.signal(signal.SIGTERM)  # mid-capture: waits stop_timeout_s, then gives up
+        assert agent.wait(20) == 0
+        assert time.monotonic() - t0 < 6
+    finally:
+        agent.kill()
+    assert agent.wait_log("scan failed", 2)[-1]["error"] == \
+        "agent stopped during the scan; scan abandoned"  # fmt: skip
+    col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
+                 == "stopped")  # fmt: skip
+
+
+def test_full_disk_publishes_uncached_with_a_cache_alarm(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2600k", "tmpfs", str(disk)], check=True)
+    try:
+        config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                              schedule={"interval_s": 0.2, "scan_at_start": True},
+                              audit={"directory": str(disk / "scans")})  # one scan fits
+        col = collector_factory(broker, [f"{BASE}/#"])
+        agent = Daemon(config, tmp_path, "--scans", "2")
+        try:
+            assert agent.wait(60) == 0
+        finally:
+            agent.kill()
+        first, second = [e["scan_id"] for e in agent.log() if e.get("event") == "scan finished"]
+        cached = sorted(p.name for p in (disk / "scans").iterdir() if p.is_dir())
+        assert cached == [first]  # the baseline could not be evicted; the second went uncached
+        assert any(e.get("event") == "disk still full, scan published uncached"
+                   for e in agent.log())  # fmt: skip
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
+                                    and json.loads(m.payload)["scan_id"] == second for m in ms))
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/alarm" for m in ms))
+        (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
+        assert (alarm["type"], alarm["state"], alarm["scan_id"]) == ("cache", "raised", second)
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path):
+    config = write_config(tmp_path / "agent.toml", 1, tmp_path,
+                          alarms={"collapse_depth_m": -1.0})
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "run", "--config", str(config)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 78
+    assert f"{config}: alarms.collapse_depth_m: Input should be greater than 0" in run.stderr
+    assert not (tmp_path / "scans").exists()  # nothing started
+
+
+def test_every_daemon_key_is_documented_in_the_example():
+    from silo_agent.config import AlarmsConfig, AuditConfig, MetricsConfig, ScheduleConfig
+
+    example = (Path(__file__).parents[1] / "config" / "silo-agent.example.toml").read_text()
+    for section, model in (("schedule", ScheduleConfig), ("audit", AuditConfig),
+                           ("alarms", AlarmsConfig), ("metrics", MetricsConfig)):
+        block = example.split(f"[{section}]", 1)[1].split("\n[", 1)[0]
+        for key in model.model_fields:
+            assert f"\n{key} = " in block or f"\n# {key} = " in block, f"{section}.{key}"
