@@ -23,7 +23,7 @@ import structlog
 from silo_agent.audit import AuditCache
 from silo_agent.config import Config, ConfigError, load_config
 from silo_agent.metrics import Metrics
-from silo_agent.pipeline import Outcome, Pipeline, ScanAbandoned, new_scan_id
+from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
 from silo_agent.sdnotify import Notifier
 from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand, Telemetry
 
@@ -76,6 +76,11 @@ class Agent:
         self._done = 0
         self._last: Outcome | None = None
         self._scheduler = None
+
+    @property
+    def last_outcome(self) -> Outcome | None:
+        """The last scan's outcome (for `run --scans N` to print)."""
+        return self._last
 
     # ------------------------------------------------------------ triggers
 
@@ -239,6 +244,7 @@ class Agent:
             self.pipeline.config = new
             self.cache.cfg = new.audit
             self.cache.directory = Path(new.audit.directory)
+            self.pipeline.state_path = self.cache.directory / STATE_FILE
         self._stop_scheduler()
         self._start_scheduler()
         log.info("config reloaded", path=str(self.config_path))
@@ -257,6 +263,7 @@ class Agent:
     def _serve(self) -> int:
         config = self.config
         self.cache.directory.mkdir(parents=True, exist_ok=True)
+        self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
         self.metrics.serve(config.metrics)
         self.telemetry.on_scan_request(self._requested)
         self.telemetry.start()
@@ -275,6 +282,7 @@ class Agent:
                 self.notifier.watchdog()
                 next_ping = now + watchdog_every
             self._collect()
+            self._outbox_metrics()
             if self._stop.is_set():
                 break
             if self._reload.is_set():
@@ -288,6 +296,11 @@ class Agent:
             self._wake.wait(timeout)
             self._wake.clear()
         return self._shutdown()
+
+    def _outbox_metrics(self) -> None:
+        pending, _ = self.telemetry.outbox.size()
+        self.metrics.outbox_pending.set(pending)
+        self.metrics.outbox_dropped.set(self.telemetry.outbox.counter("dropped"))
 
     def _shutdown(self) -> int:
         self.notifier.stopping()

@@ -299,7 +299,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config)  # a bad file: ConfigError -> 78 before anything starts
     agent = Agent(args.config, config, max_scans=args.scans)
     status = agent.run()
-    last = agent._last
+    last = agent.last_outcome
     if args.scans is not None and last is not None and last.summary is not None:
         print(json.dumps(last.summary, allow_nan=False) if args.json
               else _describe_summary(last.summary))  # fmt: skip

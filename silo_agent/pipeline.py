@@ -19,7 +19,7 @@ from typing import Any
 import structlog
 
 from silo_agent import __version__
-from silo_agent.alarms import AlarmState, Inputs, evaluate
+from silo_agent.alarms import DETECTORS, AlarmState, Inputs, evaluate
 from silo_agent.audit import RESULT, AuditCache, dump_json, is_disk_full, write_atomic
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
@@ -294,12 +294,8 @@ class Pipeline:
                 m.volume.set(result.volume_m3)
         for kind in self.state.active:
             m.alarm_active.labels(kind).set(1)
-        for kind in {"collapse", "level_high", "level_low", "change", "camera", "coverage",
-                     "cache"} - set(self.state.active):
+        for kind in set(DETECTORS) - set(self.state.active):
             m.alarm_active.labels(kind).set(0)
-        pending, _ = self.telemetry.outbox.size()
-        m.outbox_pending.set(pending)
-        m.outbox_dropped.set(self.telemetry.outbox.counter("dropped"))
 
 
 def replay_summary(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
