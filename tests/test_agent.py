@@ -69,7 +69,7 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
                  simulation={"capture_s": 0.2}, metrics={"enabled": True, "port": metrics_port})
     col = collector_factory(broker, [f"{BASE}/#", REPLIES])
     agent = Daemon(config, tmp_path,
-                   env={"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "1000000"})
+                   env={"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "2000000"})
     try:
         # --- scheduled: one at start, then every 2 s
         starts = agent.wait_log("scan started", 3, timeout=40)
@@ -140,8 +140,10 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
     assert fields.index("STOPPING=1") > fields.index("READY=1")
     assert any(f.startswith("STATUS=last scan silo-d-") and "m³" in f for f in fields)
     pings = [t for t, m in notify.messages if m == "WATCHDOG=1"]
-    assert len(pings) >= 10
-    assert max(b - a for a, b in itertools.pairwise(pings)) < 0.9  # every 0.5 s, half of 1 s
+    gaps = [b - a for a, b in itertools.pairwise(pings)]
+    assert len(pings) >= 6
+    assert 0.9 < sorted(gaps)[len(gaps) // 2] < 1.1  # every 1 s: half of WATCHDOG_USEC
+    assert max(gaps) < 2.0  # never late enough for systemd to kill the service
 
 
 def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
