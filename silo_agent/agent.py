@@ -147,7 +147,7 @@ class Agent:
         with self._lock:
             pending, self._pending = self._pending, _Pending()
             started = datetime.now(UTC)
-            taken = {e.scan_id for e in self.cache.entries()}
+            taken = self.cache.names()
             if self._last is not None:
                 taken.add(self._last.scan_id)
             scan_id = new_scan_id(self.config, started, taken)
@@ -285,7 +285,7 @@ class Agent:
             self._outbox_metrics()
             if self._stop.is_set():
                 break
-            if self._reload.is_set():
+            if self._reload.is_set() and self._running is None:  # never mid-scan
                 self._reload.clear()
                 self._do_reload()
             with self._lock:

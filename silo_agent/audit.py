@@ -163,6 +163,12 @@ class AuditCache:
             out.append(Entry(path.name, path, when, _tree_bytes(path)))
         return sorted(out, key=lambda e: (e.captured_at, e.scan_id))
 
+    def names(self) -> set[str]:
+        """Names taken in the cache directory (cheap: no manifest read, no sizes)."""
+        if not self.directory.is_dir():
+            return set()
+        return {p.name for p in self.directory.iterdir()}
+
     def find(self, scan_id: str) -> Path:
         path = self.directory / scan_id
         if "/" in scan_id or scan_id.startswith(".") or not (path / MANIFEST).is_file():

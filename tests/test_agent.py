@@ -16,6 +16,7 @@ import urllib.request
 from datetime import datetime
 from pathlib import Path
 
+import pytest
 from agent_support import BASE, Daemon, NotifySocket, write_config
 from mqtt_broker import free_port
 from mqtt_support import validate_json
@@ -245,6 +246,16 @@ def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
                               str(config)], capture_output=True, text=True, timeout=60)
     assert listing.returncode == 0
     assert [line.split()[0] for line in listing.stdout.splitlines()[:-1]] == kept
+    shown = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "show", kept[0],
+                            "--config", str(config)], capture_output=True, text=True, timeout=60)
+    report = json.loads(shown.stdout)
+    assert report["manifest"]["scan_id"] == kept[0] and "config" not in report["manifest"]
+    assert report["manifest"]["config_sha256"] and report["result"]["scan_id"] == kept[0]
+    out = tmp_path / "export.tar.gz"
+    exported = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "export", kept[0],
+                               "--config", str(config), "--out", str(out)],
+                              capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert exported.returncode == 0 and out.stat().st_size > 100_000
 
 
 def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
@@ -317,14 +328,53 @@ def test_full_disk_publishes_uncached_with_a_cache_alarm(
         subprocess.run(["umount", str(disk)], check=True)
 
 
-def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path):
-    config = write_config(tmp_path / "agent.toml", 1, tmp_path,
-                          alarms={"collapse_depth_m": -1.0})
+@pytest.mark.parametrize(("section", "values", "expected"), [
+    ("alarms", {"collapse_depth_m": -1.0},
+     "alarms.collapse_depth_m: Input should be greater than 0"),
+    ("schedule", {"cron": "0 25 * * *"}, "schedule.cron: not a crontab expression"),
+    ("metrics", {"port": 0}, "metrics.port: Input should be greater than or equal to 1"),
+    ("simulation", {"sequence": "flat"}, "simulation.sequence: Input should be a valid list"),
+])
+def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path, section, values, expected):
+    config = write_config(tmp_path / "agent.toml", 1, tmp_path, **{section: values})
     run = subprocess.run([sys.executable, "-m", "silo_agent", "run", "--config", str(config)],
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 78
-    assert f"{config}: alarms.collapse_depth_m: Input should be greater than 0" in run.stderr
+    assert f"{config}: {expected}" in run.stderr
     assert not (tmp_path / "scans").exists()  # nothing started
+
+
+def test_bad_time_zone_exits_78(tmp_path: Path):
+    config = write_config(tmp_path / "agent.toml", 1, tmp_path)
+    config.write_text(config.read_text().replace('[silo]\n', '[silo]\ntimezone = "Mars/Olympus"\n'))
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "check-config", str(config)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 78
+    assert "silo.timezone: unknown time zone 'Mars/Olympus'" in run.stderr
+
+
+def test_cron_runs_in_the_site_time_zone_with_grace_and_coalescing(tmp_path: Path):
+    from silo_agent.agent import Agent
+    from silo_agent.config import load_config
+
+    config_path = write_config(tmp_path / "agent.toml", 1, tmp_path,
+                               schedule={"cron": "0 6 * * *", "interval_s": 3600,
+                                         "misfire_grace_s": 120})
+    config_path.write_text(config_path.read_text().replace(
+        "[silo]\n", '[silo]\ntimezone = "Australia/Adelaide"\n'))
+    agent = Agent(config_path, load_config(config_path))
+    agent._start_scheduler()
+    try:
+        jobs = {job.id: job for job in agent._scheduler.get_jobs()}
+        cron = jobs["cron"]
+        assert str(cron.next_run_time.tzinfo) == "Australia/Adelaide"
+        assert (cron.next_run_time.hour, cron.next_run_time.minute) == (6, 0)
+        assert jobs["interval"].trigger.interval.total_seconds() == 3600
+        for job in jobs.values():
+            assert job.misfire_grace_time == 120 and job.coalesce and job.max_instances == 1
+    finally:
+        agent._stop_scheduler()
+        agent.telemetry.outbox.close()
 
 
 def test_every_daemon_key_is_documented_in_the_example():
