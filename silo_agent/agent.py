@@ -313,7 +313,8 @@ class Agent:
             running.thread.join(self.config.schedule.stop_timeout_s)
             if running.thread.is_alive():
                 running.abandoned.set()
-                self._report(running, "agent stopped during the scan; scan abandoned")
+                if not running.reported:
+                    self._report(running, "agent stopped during the scan; scan abandoned")
         self._collect()
         for command in self._pending.requests:
             self.telemetry.finish_scan_request(command, error="the agent stopped")
