@@ -43,6 +43,7 @@ class Inputs:
     max_z: float | None = None  # highest point of the reconstructed surface (silo frame)
     failed_cameras: tuple[tuple[str, str], ...] = ()  # (serial, error)
     cache_full: bool = False
+    reconstructed: bool = True  # False: the scan failed before reconstruction (no coverage)
     baseline: HeightMap | None = None  # collapse baseline's map, if there is one
     baseline_scan_id: str | None = None
     previous_volume_m3: float | None = None  # default: the state's last valid volume
@@ -223,7 +224,9 @@ def detect_camera(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding:
     )
 
 
-def detect_coverage(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding:
+def detect_coverage(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding | None:
+    if not inputs.reconstructed:  # the camera alarm tells why there is nothing to cover
+        return None
     limit = cfg.min_coverage * ((1 + cfg.hysteresis) if active else 1.0)
     return Finding(
         inputs.coverage < limit, "warning",

@@ -264,7 +264,8 @@ class Pipeline:
                 failed: tuple[tuple[str, str], ...], cache_full: bool = False) -> Outcome:
         summary = failure_summary(scan_id, captured_at, self.config, reason, failures, timings)
         inputs = Inputs(scan_id=scan_id, heightmap=None, volume_m3=None, coverage=0.0,
-                        valid=False, failed_cameras=failed, cache_full=cache_full)
+                        valid=False, failed_cameras=failed, cache_full=cache_full,
+                        reconstructed=False)
         events, self.state = evaluate(self.state, inputs, self.config.alarms)
         self._save_state()
         try:

@@ -24,7 +24,9 @@ def toml_value(value: object) -> str:
 
 def write_config(path: Path, port: int, workdir: Path, *, schedule: dict | None = None,
                  simulation: dict | None = None, audit: dict | None = None,
-                 alarms: dict | None = None, metrics: dict | None = None) -> Path:
+                 alarms: dict | None = None, metrics: dict | None = None,
+                 cameras: tuple[tuple[str, str | None], ...] = (("sim-A2", "A2"), ("sim-A6", "A6")),
+                 ) -> Path:
     """A config for the test daemon; sections given replace the defaults here."""
     sections = {
         "schedule": schedule if schedule is not None else {"scan_at_start": True},
@@ -44,9 +46,9 @@ def write_config(path: Path, port: int, workdir: Path, *, schedule: dict | None 
         "floor_z = 0.0", "ceiling_z = 2.8", "bulk_density_t_m3 = 0.77", "",
         "[reconstruction]", "grid_step_m = 0.05", "",
     ]
-    for serial, view in (("sim-A2", "A2"), ("sim-A6", "A6")):
-        lines += ["[[cameras]]", f'serial = "{serial}"', 'source = "sim"', f'view = "{view}"',
-                  "width = 424", "height = 240", ""]
+    for serial, view in cameras:  # a sim camera without a view cannot be placed: it fails
+        lines += ["[[cameras]]", f'serial = "{serial}"', 'source = "sim"',
+                  *([f'view = "{view}"'] if view else []), "width = 424", "height = 240", ""]
     for name, values in sections.items():
         lines.append(f"[{name}]")
         lines += [f"{k} = {toml_value(v)}" for k, v in values.items()]

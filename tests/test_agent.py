@@ -299,6 +299,48 @@ def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
                  == "stopped")  # fmt: skip
 
 
+def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    col = collector_factory(broker, [f"{BASE}/#"])
+    cameras = (("sim-A2", "A2"), ("sim-A6", "A6"), ("broken", None))
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path, cameras=cameras)
+    agent = Daemon(config, tmp_path, "--scans", "1")
+    try:
+        assert agent.wait(60) == 0
+    finally:
+        agent.kill()
+    col.wait_topic(f"{BASE}/scan")
+    degraded = validate_json(col.on(f"{BASE}/scan")[-1].payload)
+    assert degraded["valid"] is True and degraded["degraded"] is True
+    assert degraded["cameras"]["used"] == ["sim-A2", "sim-A6"]
+    (failed,) = degraded["cameras"]["failed"]
+    assert failed["serial"] == "broken" and "needs view" in failed["error"]
+    col.wait_topic(f"{BASE}/alarm")
+    (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
+    assert (alarm["type"], alarm["state"]) == ("camera", "raised") and "broken" in alarm["message"]
+    col.wait_for(lambda ms: any(m.topic == f"{BASE}/status" and any(
+        c["serial"] == "broken" and c["state"] == "failed"
+        for c in json.loads(m.payload)["cameras"]) for m in ms))  # fmt: skip
+
+    # no camera at all: the scan fails, is reported on P/scan, the agent goes on and stops cleanly
+    write_config(config, broker.port, tmp_path, cameras=(("broken", None),),
+                 schedule={"interval_s": 0.2, "scan_at_start": True})
+    agent = Daemon(config, tmp_path, "--scans", "2")
+    try:
+        assert agent.wait(60) == 0
+    finally:
+        agent.kill()
+    assert [e["reason"] for e in agent.log() if e.get("event") == "scan failed"] == [
+        "capture: no camera delivered a cloud"] * 2
+    col.wait_topic(f"{BASE}/scan", 3)
+    report = validate_json(col.on(f"{BASE}/scan")[-1].payload)
+    assert report["valid"] is False and report["volume_m3"] is None
+    assert report["invalid_reason"] == "capture: no camera delivered a cloud"
+    volume = validate_json(col.on(f"{BASE}/volume")[-1].payload)
+    assert volume["scan_id"] == degraded["scan_id"]  # the retained figure stays the last good one
+    assert len(col.on(f"{BASE}/alarm")) == 1  # camera still raised; no coverage alarm on top
+
+
 def test_full_disk_publishes_uncached_with_a_cache_alarm(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     disk = tmp_path / "disk"
