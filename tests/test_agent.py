@@ -180,8 +180,10 @@ def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
                      timeout=30)  # fmt: skip
         col.wait_for(lambda ms: any(m.topic == f"{BASE}/volume"
                                     and json.loads(m.payload)["scan_id"] == pending for m in ms))
-        agent.signal(signal.SIGTERM)
+        agent.signal(signal.SIGINT)  # Ctrl-C stops as cleanly as SIGTERM
         assert agent.wait(20) == 0
+        col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
+                     == "stopped")  # fmt: skip
     finally:
         agent.kill()
 
