@@ -40,6 +40,7 @@ class _Running:
     abandoned: threading.Event
     requests: list[ScanCommand]
     reason: str
+    started: datetime
     outcome: Outcome | None = None
     error: str | None = None
     reported: bool = False
@@ -154,7 +155,7 @@ class Agent:
             deadline = time.monotonic() + self.config.schedule.scan_timeout_s
             running = _Running(scan_id, threading.Thread(), deadline, threading.Event(),
                                pending.requests,
-                               "request" if pending.requests else "schedule")  # fmt: skip
+                               "request" if pending.requests else "schedule", started)  # fmt: skip
 
             def work() -> None:
                 try:
@@ -197,8 +198,8 @@ class Agent:
         from silo_agent.pipeline import failure_summary
 
         running.reported = True
-        log.error("scan failed", scan_id=running.scan_id, error=error)
-        summary = failure_summary(running.scan_id, f"{datetime.now(UTC):%Y-%m-%dT%H:%M:%SZ}",
+        log.error("scan failed", scan_id=running.scan_id, reason=error)
+        summary = failure_summary(running.scan_id, f"{running.started:%Y-%m-%dT%H:%M:%SZ}",
                                   self.config, error, [], {})  # fmt: skip
         try:
             self.telemetry.publish_scan_failure(summary)

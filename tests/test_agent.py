@@ -295,7 +295,7 @@ def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
         assert time.monotonic() - t0 < 6
     finally:
         agent.kill()
-    assert agent.wait_log("scan failed", 2)[-1]["error"] == \
+    assert agent.wait_log("scan failed", 2)[-1]["reason"] == \
         "agent stopped during the scan; scan abandoned"  # fmt: skip
     col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
                  == "stopped")  # fmt: skip
