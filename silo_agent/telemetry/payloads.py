@@ -21,7 +21,9 @@ MAX_COMMAND_BYTES = 65536
 
 # Alarm types every consumer can count on (Sparkplug NBIRTH and HA declare them up front);
 # others may appear and are added as they are seen.
-ALARM_TYPES = ("collapse", "level_high", "level_low", "change", "camera", "calibration")
+ALARM_TYPES = (
+    "collapse", "level_high", "level_low", "change", "camera", "coverage", "cache", "calibration",
+)
 
 
 class _Model(BaseModel):
