@@ -157,6 +157,8 @@ def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
         agent.wait_log("agent started")
         col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
                                     and json.loads(m.payload)["state"] == "online" for m in ms))
+        time.sleep(0.5)
+        assert not any(e.get("event") == "scan started" for e in agent.log())  # scan_at_start off
         agent.signal(signal.SIGKILL)
         agent.wait()
         col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
