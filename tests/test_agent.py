@@ -432,3 +432,28 @@ def test_every_daemon_key_is_documented_in_the_example():
         block = example.split(f"[{section}]", 1)[1].split("\n[", 1)[0]
         for key in model.model_fields:
             assert f"\n{key} = " in block or f"\n# {key} = " in block, f"{section}.{key}"
+
+
+def test_notifier_speaks_to_abstract_sockets_and_honours_watchdog_pid(monkeypatch):
+    import os
+    import socket
+
+    from silo_agent.sdnotify import Notifier
+
+    name = f"silo-agent-test-{os.getpid()}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind("\0" + name)  # what systemd uses when $NOTIFY_SOCKET starts with "@"
+        server.settimeout(2)
+        monkeypatch.setenv("NOTIFY_SOCKET", "@" + name)
+        monkeypatch.setenv("WATCHDOG_USEC", "30000000")
+        monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+        notifier = Notifier.from_env()
+        assert notifier.watchdog_s == 30.0
+        assert notifier.ready("up")
+        assert server.recv(100) == b"READY=1\nSTATUS=up"
+        notifier.close()
+        monkeypatch.setenv("WATCHDOG_PID", str(os.getpid() + 1))  # meant for another process
+        assert Notifier.from_env().watchdog_s is None
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    quiet = Notifier.from_env()
+    assert not quiet.enabled and quiet.status("nobody listens") is False
