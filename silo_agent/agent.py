@@ -86,10 +86,12 @@ class Agent:
     # ------------------------------------------------------------ triggers
 
     def _scheduled(self) -> None:
-        """APScheduler job: ask the loop for a scan (coalesced while one is waiting)."""
+        """APScheduler job: ask the loop for a scan. One that falls during a scan runs right
+        after it (the 06:00 report scan is not lost to an hourly one still running); several
+        waiting coalesce into one."""
         with self._lock:
-            if self._running is not None or self._pending.scheduled:
-                log.info("scheduled scan skipped: a scan is running or waiting")
+            if self._pending.scheduled:
+                log.info("scheduled scan coalesced with the one already waiting")
                 return
             self._pending.scheduled = True
         self._wake.set()

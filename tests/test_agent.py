@@ -86,6 +86,7 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
                      metrics={"enabled": True, "port": metrics_port})
         agent.signal(signal.SIGHUP)
         agent.wait_log("config reloaded")
+        time.sleep(0.3)  # a scheduled scan that was waiting starts right after the reload
         idle(agent)
         before = len(agent.wait_log("scan started"))
 
