@@ -353,7 +353,8 @@ def test_full_disk_publishes_uncached_with_a_cache_alarm(
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2600k", "tmpfs", str(disk)], check=True)
     try:
         config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                              schedule={"interval_s": 0.2, "scan_at_start": True},
+                              schedule={"interval_s": 1.0, "scan_at_start": True},
+                              simulation={"capture_s": 0.6},  # a scan outlasts the interval
                               audit={"directory": str(disk / "scans")})  # one scan fits
         col = collector_factory(broker, [f"{BASE}/#"])
         agent = Daemon(config, tmp_path, "--scans", "2")
@@ -361,7 +362,12 @@ def test_full_disk_publishes_uncached_with_a_cache_alarm(
             assert agent.wait(60) == 0
         finally:
             agent.kill()
-        first, second = [e["scan_id"] for e in agent.log() if e.get("event") == "scan finished"]
+        log = agent.log()
+        first, second = [e["scan_id"] for e in log if e.get("event") == "scan finished"]
+        # the tick that fell during the first scan was not lost: the second followed at once
+        end_first = next(stamp(e) for e in log if e.get("event") == "scan finished")
+        start_second = [stamp(e) for e in log if e.get("event") == "scan started"][1]
+        assert 0 <= start_second - end_first < 0.3
         cached = sorted(p.name for p in (disk / "scans").iterdir() if p.is_dir())
         assert cached == [first]  # the baseline could not be evicted; the second went uncached
         assert any(e.get("event") == "disk still full, scan published uncached"
