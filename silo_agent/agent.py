@@ -295,7 +295,9 @@ class Agent:
                 ready = bool(self._pending) and self._running is None
             if ready:
                 self._start_scan()
-            timeout = LOOP_S if watchdog_every is None else min(LOOP_S, watchdog_every)
+            timeout = LOOP_S  # sleep no later than the next watchdog ping is due
+            if watchdog_every is not None:
+                timeout = min(LOOP_S, max(0.0, next_ping - time.monotonic()))
             self._wake.wait(timeout)
             self._wake.clear()
         return self._shutdown()
