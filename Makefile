@@ -28,7 +28,7 @@ $(STAMP): pyproject.toml | system-deps
 	touch $(STAMP)
 
 demo: system-deps $(STAMP)
-	$(VENV)/bin/silo-agent scan --config config/demo.toml
+	$(VENV)/bin/silo-agent run --config config/demo.toml --scans 1
 
 test: system-deps $(STAMP)
 	$(VENV)/bin/ruff check silo_agent tests bench

@@ -7,6 +7,7 @@ pose the scene is really rendered from, as a badly calibrated camera would.
 
 from __future__ import annotations
 
+import time
 from functools import lru_cache
 
 from silo_agent.capture import CaptureError
@@ -17,7 +18,7 @@ from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, plan_view
 
 
-@lru_cache(maxsize=2)
+@lru_cache(maxsize=4)
 def _rig(scene: str, grain: str) -> SimRig:
     """One world per scene for all cameras and all scans: building it is the costly part."""
     return SimRig(make_scene(scene, grain))
@@ -26,27 +27,35 @@ def _rig(scene: str, grain: str) -> SimRig:
 class SimCamera:
     """A virtual D455 of `[simulation]`, placed by its `view` or its configured extrinsic."""
 
-    def __init__(self, camera: CameraConfig, config: Config) -> None:
+    def __init__(self, camera: CameraConfig, config: Config, scan_number: int = 0) -> None:
         self.serial = camera.serial
         sim = config.simulation
+        scene = sim.scene
+        if sim.sequence:  # a scene that changes scan by scan; the last one stays
+            scene = sim.sequence[min(scan_number, len(sim.sequence) - 1)]
         try:
-            rig = _rig(sim.scene, sim.grain)
+            rig = _rig(scene, sim.grain)
             nominal = camera.extrinsic_matrix()
             if nominal is None:
                 if camera.view is None:
                     raise ValueError("a sim camera needs view = 'A1'..'A8' or an extrinsic")
-                nominal = view_pose(rig.scene, camera.view, sim.layout)
+                # cameras stay put while the scene changes: placed for the sequence's first
+                placed = _rig(sim.sequence[0], sim.grain) if sim.sequence else rig
+                nominal = view_pose(placed.scene, camera.view, sim.layout)
         except ValueError as exc:
             raise CaptureError(f"camera {camera.serial}: {exc}") from None
         self._rig = rig
-        self._seed = sim.seed
+        self._seed = sim.seed + (scan_number if sim.vary_noise else 0)
         self._color = camera.color
-        self._view = plan_view(
+        self._capture_s = sim.capture_s
+        self._view = plan_view(  # the pose error stays: it is the camera's, not the scan's
             camera.view or camera.serial, camera.serial, nominal, sim.seed,
             (sim.calib_error_deg, sim.calib_error_m), camera.width, camera.height,
         )
 
     def capture(self) -> CameraCloud:
+        if self._capture_s:  # as long as a real camera's warm-up and frames
+            time.sleep(self._capture_s)
         return self._rig.cloud(self._view, self._seed, self._color)
 
     def close(self) -> None:
