@@ -99,10 +99,12 @@ def about(rotation: np.ndarray, pivot: np.ndarray, shift: np.ndarray | None = No
     return out
 
 
-def fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares plane: (unit normal pointing up, centroid)."""
-    centroid = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - centroid, full_matrices=False)
+def fit_plane(points: np.ndarray, weights: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(Weighted) least-squares plane: (unit normal pointing up, weighted centroid)."""
+    w = np.ones(len(points)) if weights is None else weights
+    centroid = (w[:, None] * points).sum(axis=0) / w.sum()
+    _, _, vt = np.linalg.svd(np.sqrt(w)[:, None] * (points - centroid), full_matrices=False)
     normal = vt[2]
     return (normal if normal[2] >= 0 else -normal), centroid
 
@@ -293,9 +295,14 @@ def gravity_angles(cameras: Sequence[CameraCloud]) -> dict[str, float]:
     return out
 
 
+def point_sigma(depth: np.ndarray) -> np.ndarray:
+    """Expected depth noise (m) of points at camera-frame depth `depth` (D455: grows with z²)."""
+    return ICP_SIGMA_M + ICP_SIGMA_PER_M2 * depth * depth
+
+
 def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
-                 settings: CalibrationConfig) -> np.ndarray:
-    """The camera's points (silo frame) that are floor.
+                 settings: CalibrationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's points (silo frame) that are floor, and their expected noise (m).
 
     A RANSAC plane (open3d) among the points near `floor_z` within `floor_max_range_m` of the
     camera; then only points near that plane and away from anything standing on it. The foot
@@ -310,12 +317,12 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     pts = cam[near] @ extrinsic[:3, :3].T + extrinsic[:3, 3]
     band = np.abs(pts[:, 2] - floor_z) <= settings.floor_band_m
     if band.sum() < FLOOR_MIN_POINTS:
-        return np.empty((0, 3))
+        return np.empty((0, 3)), np.empty(0)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[band]))
     o3d.utility.random.seed(0)
     model, inliers = cloud.segment_plane(FLOOR_RANSAC_DISTANCE_M, 3, 1000)
     if len(inliers) < FLOOR_MIN_POINTS:
-        return np.empty((0, 3))
+        return np.empty((0, 3)), np.empty(0)
     normal = np.asarray(model[:3])
     scale = np.linalg.norm(normal)
     sign = 1.0 if normal[2] >= 0 else -1.0
@@ -331,7 +338,7 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
         raised = (total / count > FLOOR_RAISED_M).reshape(shape)
     raised = ndimage.binary_dilation(raised, iterations=FLOOR_MARGIN_CELLS)
     keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~raised.ravel()[flat]
-    return pts[keep]
+    return pts[keep], point_sigma(cam[near][keep, 2])
 
 
 # ---------------------------------------------------------------- registration
@@ -371,7 +378,7 @@ def _view(camera: CameraCloud, extrinsic: np.ndarray, site: Site,
         keep &= np.abs(normals @ extrinsic[2, :3]) < ICP_LEVEL_NORMAL_COS
     points, normals = points[keep], normals[keep]
     depth = points[:, 2]
-    sigma = ICP_SIGMA_M + ICP_SIGMA_PER_M2 * depth * depth  # D455: noise grows with z²
+    sigma = point_sigma(depth)
     return _View(points, normals, sigma, cKDTree(points))
 
 
@@ -536,13 +543,13 @@ def calibrate(
     counts: dict[str, int] = {s: 0 for s in poses}
     if floor:
         for c in cameras:
-            found = floor_points(c, poses[c.serial], site.floor_z, settings)
+            found, sigma = floor_points(c, poses[c.serial], site.floor_z, settings)
             counts[c.serial] = len(found)
             if len(found) < FLOOR_MIN_POINTS:
                 notes.append(f"{c.serial}: sees no floor (z = {site.floor_z:g}) within "
                              f"{settings.floor_max_range_m:g} m; not leveled by the floor")
                 continue
-            normal, centroid = fit_plane(found)
+            normal, centroid = fit_plane(found, 1 / sigma**2)
             poses[c.serial] = level_on_plane(poses[c.serial], normal, centroid, site.floor_z)
             leveled[c.serial] = "floor"
 
