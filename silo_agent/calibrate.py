@@ -63,6 +63,10 @@ class CalibrationError(Exception):
     """Calibration impossible or refused; the message says which camera and why."""
 
 
+class SerialMismatch(CalibrationError):
+    """The scan's cameras and the config's are not the same set of serials."""
+
+
 # ---------------------------------------------------------------- small geometry
 
 
@@ -677,7 +681,7 @@ def start_poses(config: Config, scan: Scan) -> dict[str, np.ndarray]:
             parts.append(f"scan cameras not in the config: {', '.join(unknown)}")
         if missing:
             parts.append(f"config cameras not in the scan: {', '.join(missing)}")
-        raise CalibrationError("serials do not match: " + "; ".join(parts))
+        raise SerialMismatch("serials do not match: " + "; ".join(parts))
     out = {}
     for camera in scan.cameras:
         matrix = configured[camera.serial].extrinsic_matrix()
