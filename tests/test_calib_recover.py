@@ -87,5 +87,5 @@ def test_a_correction_beyond_the_bound_is_refused(perturbed) -> None:
     scan, _ = perturbed
     with pytest.raises(CalibrationError, match=r"refused: sim-A\d would turn .* and move \d+ mm"):
         calibrate(scan, CalibrationConfig(max_correction_m=0.004), floor=True)
-    with pytest.raises(CalibrationError, match="max_correction_deg = 0.1"):
+    with pytest.raises(CalibrationError, match=r"max_correction_deg = 0\.1"):
         calibrate(scan, CalibrationConfig(max_correction_deg=0.1), floor=True)
