@@ -88,7 +88,8 @@ def cmd_process(args: argparse.Namespace) -> int:
         site = site_from_config(config)
     detection = config.detection if config is not None else DetectionConfig()
     try:
-        result = analyse(scan, settings, detection, site=site)
+        calibration = config.calibration if config is not None else None
+        result = analyse(scan, settings, detection, site=site, calibration=calibration)
     except ModelError as exc:
         return _fail(str(exc), EX_CONFIG)
     if args.json:
@@ -181,7 +182,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
         return _fail(f"cannot write the scan: {exc}", 1)
     previous = _previous_piles(directory.parent, scan.scan_id)
     try:
-        result = analyse(scan, config.reconstruction, config.detection, previous=previous)
+        result = analyse(scan, config.reconstruction, config.detection, previous=previous,
+                         calibration=config.calibration)
     except ModelError as exc:
         return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
     summary = result.summary()
