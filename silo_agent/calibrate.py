@@ -574,6 +574,12 @@ def calibrate(
     if any(v == "floor" for v in leveled.values()):
         pass  # cameras without floor keep the level the graph gave them relative to the others
     elif with_gravity:
+        linked = {s for p in pairs if p.used for s in (p.a, p.b)}
+        for c in with_gravity:
+            if c.serial not in linked:  # alone: its own accelerometer levels it, about its centre
+                down = poses[c.serial][:3, :3] @ gravity_of(c)
+                poses[c.serial] = about(rotation_between(down, -UP),
+                                        poses[c.serial][:3, 3]) @ poses[c.serial]
         downs = [poses[c.serial][:3, :3] @ gravity_of(c) for c in with_gravity]
         mean_down = np.mean([d / np.linalg.norm(d) for d in downs], axis=0)
         pivot = np.mean([poses[s][:3, 3] for s in poses], axis=0)
