@@ -53,6 +53,8 @@ FLOOR_MARGIN_CELLS = 2  # and neither are its neighbours this many cells around
 ICP_ITERATIONS = 15  # per scale
 ICP_SCALES = (1.0, 0.5, 0.25)  # correspondence distance, as fractions of icp_max_distance_m
 ICP_MIN_INCIDENCE_COS = 0.17  # points seen more grazing than ~80 deg are not used
+ICP_NORMAL_AGREEMENT_COS = 0.9  # correspondences whose normals differ by more (~25 deg) are
+# two faces of a ridge or apex, seen from opposite sides: not the same surface
 ICP_LEVEL_NORMAL_COS = 0.97  # normals within ~14 deg of vertical: a level surface
 LOCKED_PRECISION = 1e12  # prior precision of a degree of freedom the floor already fixed
 ICP_DATA_WEIGHT = 1.0  # data information scale (neighbouring points are not independent)
@@ -498,6 +500,11 @@ def _accumulate(views: Sequence[_View], poses: Sequence[np.ndarray], a: int, b: 
     dist, idx = va.tree.query(in_a, distance_upper_bound=distance)
     hit = np.isfinite(dist)
     share = float(hit.mean()) if len(hit) else 0.0
+    # the two points must be the same surface: normals that agree (not both faces of a ridge)
+    found = np.flatnonzero(hit)
+    agree = np.abs(np.einsum("ij,ij->i", vb.normals[found] @ pb[:3, :3].T,
+                             va.normals[idx[found]] @ pa[:3, :3].T)) >= ICP_NORMAL_AGREEMENT_COS
+    hit[found[~agree]] = False
     if hit.sum() < 6:
         return share, 0.0
     q = world_b[hit]
