@@ -53,7 +53,8 @@ def test_floor_calibration_recovers_height_and_tilt(perturbed) -> None:
         assert after[serial] < 0.002, (serial, after)
         assert _tilt_error_deg(result.extrinsics()[serial], truth[serial]) < 0.06
         degrees, metres = next(c for c in result.cameras if c.serial == serial).correction
-        assert 0.1 < degrees < 1.5 and metres < 0.05
+        # yaw about the pile's axis is unobservable on a cone: only bounded, not recovered
+        assert 0.1 < degrees < 3.0 and metres < 0.1
     key = "sim-A1|sim-A3"
     assert abs(result.residual_before[key].median_m) > 0.003
     assert abs(result.residual_after[key].median_m) < 0.002
