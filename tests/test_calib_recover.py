@@ -6,9 +6,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from calib_support import render, rig
+from calib_support import knocked, render, rig
 
-from silo_agent.calibrate import CalibrationError, calibrate, with_extrinsics
+from silo_agent.calibrate import CalibrationError, calibrate, refine, with_extrinsics
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.sim.layouts import perturb, view_pose
@@ -90,3 +90,18 @@ def test_a_correction_beyond_the_bound_is_refused(perturbed) -> None:
         calibrate(scan, CalibrationConfig(max_correction_m=0.004), floor=True)
     with pytest.raises(CalibrationError, match=r"max_correction_deg = 0\.1"):
         calibrate(scan, CalibrationConfig(max_correction_deg=0.1), floor=True)
+
+
+def test_per_scan_refinement_is_bounded() -> None:
+    nominal = view_pose(rig().scene, "A3")
+    settings = CalibrationConfig(refine=True)
+    small = render(VIEWS, seed=7, true_poses={"A3": knocked(nominal, 0.2, (1.0, 0.0, 0.0))})
+    refined, notes = refine(small, settings)
+    assert notes == []
+    before = reconstruct(small, ReconstructionConfig()).registration["sim-A1|sim-A3"]
+    after = reconstruct(refined, ReconstructionConfig()).registration["sim-A1|sim-A3"]
+    assert abs(before.median_m) > 0.003 and abs(after.median_m) < 0.0015
+
+    large = render(VIEWS, seed=7, true_poses={"A3": knocked(nominal, 1.0, (1.0, 0.0, 0.0))})
+    kept, notes = refine(large, settings)
+    assert kept is large and len(notes) == 1 and "beyond refine_max" in notes[0]
