@@ -343,7 +343,7 @@ class CalibrationConfig(Strict):
         default=0.15, gt=0, description="points this close to floor_z are floor candidates"
     )
     floor_max_range_m: float = Field(
-        default=4.0, gt=0, description="floor points farther from their camera are too noisy"
+        default=6.0, gt=0, description="floor points farther from their camera are too noisy"
     )
     refine: bool = Field(
         default=False, description="every scan: bounded ICP on the overlaps before reconstructing"
