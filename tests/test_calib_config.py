@@ -129,3 +129,24 @@ def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: P
     done = run_cli("calibrate", "--config", str(config), "--scan", str(scan_dir))
     assert done.returncode == EX_CONFIG
     assert "calibration.drift_consecutive" in done.stderr
+
+
+def test_cli_calibrate_capture_with_sim_cameras(tmp_path: Path) -> None:
+    config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
+    config.write_text(config.read_text() + f"""
+[simulation]
+scene = "cone"
+calib_error_deg = 0.5
+calib_error_m = 0.01
+
+[audit]
+directory = "{tmp_path / 'scans'}"
+""")
+    done = run_cli("calibrate", "--config", str(config), "--capture", "--floor", "--json")
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert not out["config_written"] and out["backup"] is None
+    residual = out["registration_residual_m"]["sim-A1|sim-A3"]
+    assert abs(residual["before"]) > 0.003 and abs(residual["after"]) < 0.002
+    kept = list((tmp_path / "scans").glob("*-calibration/scan.json"))
+    assert len(kept) == 1  # the calibration scan is kept for audit
