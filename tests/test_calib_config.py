@@ -150,3 +150,19 @@ directory = "{tmp_path / 'scans'}"
     assert abs(residual["before"]) > 0.003 and abs(residual["after"]) < 0.002
     kept = list((tmp_path / "scans").glob("*-calibration/scan.json"))
     assert len(kept) == 1  # the calibration scan is kept for audit
+
+    # written back, the next calibration scan finds the cameras where the config says
+    done = run_cli("calibrate", "--config", str(config), "--scan", str(kept[0].parent),
+                   "--floor", "--write", "--json")
+    assert done.returncode == 0, done.stderr
+    again = run_cli("calibrate", "--config", str(config), "--capture", "--floor", "--json")
+    assert again.returncode == 0, again.stderr
+    second = json.loads(again.stdout)
+    assert abs(second["registration_residual_m"]["sim-A1|sim-A3"]["before"]) < 0.002
+    for camera in second["cameras"]:
+        # height and tilt stay; rotation about the cone's axis is unobservable on a cone, so
+        # the prior alone holds it and a second calibration may turn a camera along it
+        old, new = np.asarray(camera["previous_extrinsic"]), np.asarray(camera["extrinsic"])
+        assert abs(new[2, 3] - old[2, 3]) < 0.002
+        tilt = np.degrees(np.arccos(np.clip(old[2, :3] @ new[2, :3], -1, 1)))
+        assert tilt < 0.05

@@ -2,11 +2,14 @@
 so the daemon runs end to end on a laptop (config/demo.toml).
 
 The cloud carries the configured (nominal) extrinsic; `[simulation] calib_error_*` moves the
-pose the scene is really rendered from, as a badly calibrated camera would.
+pose the scene is really rendered from, as a badly calibrated camera would. A camera with both
+a `view` and an extrinsic really hangs at its view (plus the error) whatever the extrinsic
+says, so a calibrated config (`silo-agent calibrate --write`) converges on it.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 from silo_agent.capture import CaptureError
@@ -41,10 +44,16 @@ class SimCamera:
         self._rig = rig
         self._seed = sim.seed
         self._color = camera.color
-        self._view = plan_view(
-            camera.view or camera.serial, camera.serial, nominal, sim.seed,
-            (sim.calib_error_deg, sim.calib_error_m), camera.width, camera.height,
-        )
+        error = (sim.calib_error_deg, sim.calib_error_m)
+        key = camera.view or camera.serial
+        self._view = plan_view(key, camera.serial, nominal, sim.seed, error, camera.width,
+                               camera.height)
+        if camera.view is not None and camera.extrinsic_matrix() is not None:
+            # the camera hangs at its view (off by calib_error); the configured extrinsic is
+            # only what the config believes, e.g. after `silo-agent calibrate --write`
+            mounted = plan_view(key, camera.serial, view_pose(rig.scene, camera.view, sim.layout),
+                                sim.seed, error, camera.width, camera.height)
+            self._view = replace(self._view, true=mounted.true)
 
     def capture(self) -> CameraCloud:
         return self._rig.cloud(self._view, self._seed, self._color)
