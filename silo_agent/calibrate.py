@@ -238,6 +238,8 @@ class Calibration:
                 f"[{', '.join(f'{v:.4f}' for v in rotate)}] / "
                 f"[{', '.join(f'{v:.4f}' for v in translate)}]"
             )
+            for row in c.after[:3]:
+                lines.append(" " * 18 + "  ".join(f"{v:+.6f}" for v in row))
         lines.append("pair                    residual before -> after (median, MAD, cells; mm)")
         for k in sorted(set(self.residual_before) | set(self.residual_after)):
             lines.append(f"{k:<23} {_fmt(self.residual_before.get(k))} -> "
