@@ -28,13 +28,18 @@ $(STAMP): pyproject.toml | system-deps
 	touch $(STAMP)
 
 demo: system-deps $(STAMP)
-	$(VENV)/bin/silo-agent scan --config config/demo.toml
+	$(VENV)/bin/silo-agent run --config config/demo.toml --scans 1
 
 test: system-deps $(STAMP)
 	$(VENV)/bin/ruff check silo_agent tests bench
 	$(PY) -m pytest -q
 
+# The surveyor's tool the benchmarks compare against (Debian's cloudcompare, run headless).
 bench: $(STAMP)
+	@command -v CloudCompare >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq cloudcompare; \
+	  else echo "missing system package, run: sudo apt-get install cloudcompare"; exit 1; fi; }
 	$(PY) bench/accuracy.py
 	$(PY) bench/speed.py
 

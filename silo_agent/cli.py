@@ -356,6 +356,117 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- daemon and audit cache
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from silo_agent.agent import Agent
+
+    config = load_config(args.config)  # a bad file: ConfigError -> 78 before anything starts
+    agent = Agent(args.config, config, max_scans=args.scans)
+    status = agent.run()
+    last = agent.last_outcome
+    if args.scans is not None and last is not None and last.summary is not None:
+        print(json.dumps(last.summary, allow_nan=False) if args.json
+              else _describe_summary(last.summary))  # fmt: skip
+    return status
+
+
+def _describe_summary(summary: dict) -> str:
+    volume = summary.get("volume_m3")
+    level = summary.get("level") or {}
+    lines = [f"scan      {summary['scan_id']}  ({summary.get('captured_at')})"]
+    if volume is None:
+        lines.append("volume    unknown")
+    else:
+        mass = summary.get("mass_t")
+        lines.append(f"volume    {volume:.4f} m³" + (f"   mass {mass:.3f} t" if mass else ""))
+    lines.append(f"coverage  {summary['coverage'] * 100:.1f} % of the region observed")
+    if level:
+        lines.append(f"level     min {level['min']:.3f}  mean {level['mean']:.3f}  "
+                     f"max {level['max']:.3f} m above floor")  # fmt: skip
+    valid = "yes" if summary["valid"] else f"NO: {summary['invalid_reason']}"
+    lines.append(f"valid     {valid}")
+    lines.append(f"piles     {len(summary.get('piles') or [])}")
+    failed = (summary.get("cameras") or {}).get("failed") or []
+    for f in failed:
+        lines.append(f"camera    {f['serial']} failed: {f['error']}")
+    return "\n".join(lines)
+
+
+def _scan_dir(target: str, config_path: Path | None) -> Path:
+    """A scan directory given as a path, or as a scan id in the config's audit cache."""
+    path = Path(target)
+    if path.is_dir():
+        return path
+    if config_path is None:
+        raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
+    from silo_agent.audit import AuditCache
+
+    return AuditCache(load_config(config_path).audit).find(target)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from silo_agent.audit import comparable, differences
+    from silo_agent.pipeline import replay_summary
+    from silo_agent.scan import ScanError
+
+    try:
+        directory = _scan_dir(args.scan, args.config)
+        published, again = replay_summary(directory)
+    except ScanError as exc:
+        return _fail(str(exc), EX_DATAERR)
+    diff = differences(comparable(published), comparable(again))
+    if diff:
+        print(f"{directory.name}: replay DIFFERS from the published result:")
+        for line in diff:
+            print(f"  {line}")
+        return 1
+    print(f"{directory.name}: replay identical to the published result "
+          f"(volume {again.get('volume_m3')} m³; timings not compared)")  # fmt: skip
+    return 0
+
+
+def cmd_scans(args: argparse.Namespace) -> int:
+    from silo_agent.audit import RESULT, AuditCache
+    from silo_agent.scan import ScanError
+
+    cache = AuditCache(load_config(args.config).audit)
+    if args.action == "list":
+        entries = cache.entries()
+        for e in entries:
+            try:
+                result = json.loads((e.path / RESULT).read_text(encoding="utf-8"))
+                volume = result.get("volume_m3")
+                what = (f"{volume:.4f} m³" if volume is not None else "no volume") + (
+                    "" if result.get("valid") else " (invalid)")
+            except (OSError, ValueError):
+                what = "no result"
+            print(f"{e.scan_id}  {e.captured_at:%Y-%m-%dT%H:%M:%SZ}  "
+                  f"{e.bytes / 1e6:8.2f} MB  {what}")
+        total = sum(e.bytes for e in entries)
+        print(f"{len(entries)} scan(s), {total / 1e6:.2f} MB of {cache.cfg.max_bytes / 1e6:.0f} MB"
+              f" in {cache.directory}")  # fmt: skip
+        return 0
+    if args.scan_id is None:
+        return _fail(f"scans {args.action} needs a SCAN_ID", 2)
+    try:
+        path = cache.find(args.scan_id)
+    except ScanError as exc:
+        return _fail(str(exc), 1)
+    if args.action == "show":
+        manifest = json.loads((path / "scan.json").read_text(encoding="utf-8"))
+        manifest.pop("config", None)
+        report = {"scan_dir": str(path), "manifest": manifest}
+        if (path / RESULT).is_file():
+            report["result"] = json.loads((path / RESULT).read_text(encoding="utf-8"))
+        print(json.dumps(report, indent=2))
+        return 0
+    out = args.out or Path(f"{args.scan_id}.tar.gz")
+    print(cache.export(args.scan_id, out))
+    return 0
+
+
 # ---------------------------------------------------------------- wiring
 
 
@@ -368,6 +479,24 @@ def build_parser() -> argparse.ArgumentParser:
         "--log-level", default="info", choices=["debug", "info", "warning", "error"]
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="the service: scan on schedule and on request, publish")
+    p.add_argument("--config", type=Path, required=True, metavar="FILE")
+    p.add_argument("--scans", type=_positive, metavar="N", help="stop after N scans")
+    p.add_argument("--json", action="store_true", help="with --scans: the last result as JSON")
+    p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("replay", help="re-process a cached scan, compare with the published")
+    p.add_argument("scan", metavar="SCAN_ID|DIR")
+    p.add_argument("--config", type=Path, metavar="FILE", help="to find SCAN_ID in its cache")
+    p.set_defaults(handler=cmd_replay)
+
+    p = sub.add_parser("scans", help="the audit cache: list, show or export scans")
+    p.add_argument("action", choices=["list", "show", "export"])
+    p.add_argument("scan_id", nargs="?", metavar="SCAN_ID")
+    p.add_argument("--config", type=Path, required=True, metavar="FILE")
+    p.add_argument("--out", type=Path, metavar="FILE.tar.gz", help="export: where to write")
+    p.set_defaults(handler=cmd_scans)
 
     p = sub.add_parser("check-config", help="validate a configuration file and exit")
     p.add_argument("file", type=Path)
@@ -414,7 +543,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_calibrate)
 
     p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
-    p.add_argument("--scene", required=True, choices=["cone", "piles", "ridge", "crater", "full"])
+    p.add_argument("--scene", required=True,
+                   choices=["cone", "piles", "ridge", "crater", "full", "flat"])
     p.add_argument("--views", required=True, type=_views, metavar="A1,A5",
                    help="camera positions A1-A8 (midpoints A1 A3 A5 A7, corners A2 A4 A6 A8)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="new scan directory")

@@ -50,7 +50,18 @@ class SiloConfig(Strict):
     ceiling_z: float | None = None
     base: Literal["floor", "boundary"] = "floor"
     bulk_density_t_m3: float | None = Field(default=None, gt=0)
-    timezone: str = "UTC"
+    timezone: str = Field(default="UTC", description="IANA zone of schedule.cron")
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_zone(cls, zone: str) -> str:
+        from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+        try:
+            ZoneInfo(zone)
+        except (ZoneInfoNotFoundError, ValueError):
+            raise ValueError(f"unknown time zone {zone!r} (want an IANA name)") from None
+        return zone
 
     @field_validator("region")
     @classmethod
@@ -213,6 +224,16 @@ class CameraConfig(Strict):
 
 class SimulationConfig(Strict):
     scene: str = "cone"
+    sequence: list[str] = Field(
+        default=[], description="scenes taken scan after scan (the last one stays); overrides scene"
+    )
+    vary_noise: bool = Field(
+        default=False, description="new sensor noise every scan, as a real camera gives"
+    )
+    capture_s: float = Field(
+        default=0.0, ge=0, le=600,
+        description="seconds each camera's capture takes (a D455's warm-up and frames: ~1.5 s)",
+    )
     grain: Literal["wheat", "corn", "soybeans", "rice"] = "wheat"
     seed: int = 0
     layout: Literal["paper", "wall"] = "paper"
@@ -295,8 +316,64 @@ class MqttConfig(Strict):
 
 class ScheduleConfig(Strict):
     interval_s: float | None = Field(default=None, gt=0)
-    cron: str | None = None
+    cron: str | None = Field(default=None, description="crontab line, in silo.timezone")
     scan_at_start: bool = True
+    misfire_grace_s: float = Field(
+        default=300, gt=0, description="a scan due this long ago (machine asleep) still runs"
+    )
+    scan_timeout_s: float = Field(default=600, gt=0, description="overall deadline of one scan")
+    stop_timeout_s: float = Field(
+        default=30, ge=0, description="on SIGTERM, how long a running scan may finish"
+    )
+
+    @field_validator("cron")
+    @classmethod
+    def _valid_cron(cls, cron: str | None) -> str | None:
+        if cron is None:
+            return None
+        from apscheduler.triggers.cron import CronTrigger
+
+        try:
+            CronTrigger.from_crontab(cron)
+        except ValueError as exc:
+            raise ValueError(f"not a crontab expression ({exc})") from None
+        return cron
+
+
+class AlarmsConfig(Strict):
+    """Alarm thresholds (silo_agent/alarms.py); each alarm raises and clears with hysteresis."""
+
+    enabled: bool = True
+    collapse_depth_m: float = Field(default=0.10, gt=0, description="drop vs the baseline")
+    collapse_min_area_m2: float = Field(default=0.25, gt=0, description="smallest collapse")
+    collapse_noise_k: float = Field(
+        default=5.0, gt=0, description="a drop must also exceed k x the maps' noise sigma"
+    )
+    baseline_scan_id: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_.-]+$",
+        description="pin the collapse baseline to this cached scan; default the last valid scan",
+    )
+    high_level_margin_m: float | None = Field(
+        default=0.30, gt=0, description="level_high when the surface is this close to ceiling_z"
+    )
+    low_volume_m3: float | None = Field(default=None, ge=0, description="level_low below this")
+    change_fraction: float | None = Field(
+        default=0.20, gt=0, description="change: volume moved by more than this share in a scan"
+    )
+    min_coverage: float = Field(default=0.30, ge=0, le=1, description="coverage fault below")
+    hysteresis: float = Field(
+        default=0.5, gt=0, lt=1,
+        description="an active alarm clears only when its measure falls below this share "
+        "of the raise threshold (level: this share of the margin further away)",
+    )
+
+
+class MetricsConfig(Strict):
+    """Prometheus exposition (prometheus-client); off by default."""
+
+    enabled: bool = False
+    host: str = Field(default="127.0.0.1", description="listen address")
+    port: int = Field(default=9464, ge=1, le=65535)
 
 
 class AuditConfig(Strict):
@@ -361,6 +438,8 @@ class Config(Strict):
     mqtt: MqttConfig = MqttConfig()
     schedule: ScheduleConfig = ScheduleConfig()
     audit: AuditConfig = AuditConfig()
+    alarms: AlarmsConfig = AlarmsConfig()
+    metrics: MetricsConfig = MetricsConfig()
     calibration: CalibrationConfig = CalibrationConfig()
 
     @model_validator(mode="after")

@@ -55,6 +55,19 @@ def test_crater_is_a_slab_minus_an_inverted_cone() -> None:
     assert got == pytest.approx(formula, rel=1e-6)
 
 
+def test_flat_is_the_crater_bay_before_the_funnel_opened() -> None:
+    flat, crater = make_scene("flat", "wheat"), make_scene("crater", "wheat")
+    assert flat.volume_m3 == pytest.approx(1.2 * 36.0, rel=1e-12)
+    assert numeric_volume(flat.height, flat.site.region, 0.0, STEP) == pytest.approx(
+        flat.volume_m3, rel=1e-6)
+    x, y = np.meshgrid(np.linspace(-2.9, 2.9, 30), np.linspace(-2.9, 2.9, 30))
+    far = np.hypot(x - 0.4, y + 0.3) > crater.params["radius"]  # outside the funnel: the same
+    assert np.array_equal(flat.height(x, y)[far], crater.height(x, y)[far])
+    assert np.array_equal(flat.site.region, crater.site.region)
+    assert (flat.layout, flat.wall_half_m, flat.wall_camera_z) == (
+        crater.layout, crater.wall_half_m, crater.wall_camera_z)
+
+
 def test_full_bay_is_a_slab_plus_the_filling_cone_with_clutter_above_the_crop() -> None:
     scene = make_scene("full", "wheat")
     p = scene.params

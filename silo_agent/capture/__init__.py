@@ -43,23 +43,24 @@ class CaptureResult:
         return bool(self.failures)
 
 
-def open_camera(camera: CameraConfig, config: Config) -> Camera:
-    """The `Camera` for one `[[cameras]]` entry."""
+def open_camera(camera: CameraConfig, config: Config, scan_number: int = 0) -> Camera:
+    """The `Camera` for one `[[cameras]]` entry; `scan_number` (0, 1, ... since the agent
+    started) lets a simulated camera play a scene sequence."""
     if camera.source == "sim":
         from silo_agent.capture.sim import SimCamera
 
-        return SimCamera(camera, config)
+        return SimCamera(camera, config, scan_number)
     from silo_agent.capture.realsense import RealSenseCamera
 
     return RealSenseCamera(camera, config)
 
 
-def capture_all(config: Config) -> CaptureResult:
+def capture_all(config: Config, scan_number: int = 0) -> CaptureResult:
     """Capture every configured camera in turn; a failing camera is recorded, not fatal."""
     result = CaptureResult()
     for camera_config in config.cameras:
         try:
-            camera = open_camera(camera_config, config)
+            camera = open_camera(camera_config, config, scan_number)
             try:
                 result.clouds.append(camera.capture())
             finally:

@@ -20,7 +20,7 @@ from silo_agent.sim.grains import Grain, grain
 
 HeightField = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
-SCENES = ("cone", "piles", "ridge", "crater", "full")
+SCENES = ("cone", "piles", "ridge", "crater", "full", "flat")
 PAPER_PILE_M3 = 1.68  # the paper's reference pile
 
 
@@ -246,6 +246,23 @@ def crater_scene(g: Grain) -> Scene:
     )
 
 
+def flat_scene(g: Grain) -> Scene:
+    """The crater's bay before the outlet opened: flat grain at the crater's level. With
+    `crater` in a scan sequence it is a funnel opening and being filled again."""
+    centre, _radius, level = CRATER
+    site = Site(region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.8,
+                bulk_density_t_m3=g.density_t_m3)
+    return Scene(
+        name="flat", grain=g, site=site,
+        height=_bay(lambda x, y: np.full(np.broadcast(x, y).shape, level), 3.0),
+        extent=BAY_EXTENT, outer_z=None,
+        volume_m3=level * (2 * BAY_HALF) ** 2,
+        target=(centre[0], centre[1], level), layout="wall", wall_half_m=BAY_HALF,
+        wall_camera_z=2.6,
+        params={"level": level, "area": (2 * BAY_HALF) ** 2},
+    )
+
+
 FULL = (1.6, 1.2, 3.2)  # grain level, filling cone radius, roof
 
 
@@ -276,7 +293,7 @@ def full_scene(g: Grain) -> Scene:
 
 _BUILDERS: dict[str, Callable[[Grain], Scene]] = {
     "cone": cone_scene, "piles": piles_scene, "ridge": ridge_scene,
-    "crater": crater_scene, "full": full_scene,
+    "crater": crater_scene, "full": full_scene, "flat": flat_scene,
 }
 
 

@@ -64,7 +64,12 @@ LOOP_TIMEOUT_S = 0.01
 
 
 class CommandRejected(Exception):
-    """Raised by a scan-request callback to answer the request with an error."""
+    """Raised by a scan-request callback to answer the request with an error; `scan_id` names
+    the scan it is about (e.g. the one running when the agent is busy)."""
+
+    def __init__(self, message: str, scan_id: str | None = None) -> None:
+        super().__init__(message)
+        self.scan_id = scan_id
 
 
 @dataclass(frozen=True)
@@ -214,6 +219,17 @@ class Telemetry:
                 raw, new_metric = self.spb_node.data_from_result(summary)
             self._enqueue_sparkplug(raw, new_metric)
         return envs
+
+    def publish_scan_failure(self, summary: dict) -> Envelope:
+        """Queue `P/scan` alone for a scan that produced no usable result (its
+        `invalid_reason` says why): the retained `P/volume` and `P/heightmap` keep the last
+        good values."""
+        check_summary(summary)
+        env = self._enqueue_json("scan", lambda e: scan_payload(e, summary).to_bytes())
+        with self._lock:
+            self._last_scan_id = summary["scan_id"]
+            self._status_dirty = True
+        return env
 
     def publish_alarm(self, event: dict) -> Envelope:
         """Queue an alarm event on `P/alarm` and the current state on `P/alarm/<type>`."""
@@ -572,6 +588,7 @@ class Telemetry:
         correlation = getattr(props, "CorrelationData", None)
         request_id: str | None = None
         error: str | None = None
+        about: str | None = None
         if len(msg.payload) > MAX_COMMAND_BYTES:
             error = f"payload too large: {len(msg.payload)} bytes, limit {MAX_COMMAND_BYTES}"
         else:
@@ -601,10 +618,12 @@ class Telemetry:
                     callback(command)
                 except CommandRejected as exc:
                     error = str(exc) or "rejected"
+                    about = exc.scan_id
         if error is not None:
             log.warning("scan request refused", request_id=request_id, error=error)
             self._reply(
-                reply_topic, correlation, request_id, status="error", accepted=False, error=error
+                reply_topic, correlation, request_id, status="error", accepted=False, error=error,
+                scan_id=about,
             )
         else:
             log.info("scan request accepted", request_id=request_id)

@@ -21,7 +21,9 @@ MAX_COMMAND_BYTES = 65536
 
 # Alarm types every consumer can count on (Sparkplug NBIRTH and HA declare them up front);
 # others may appear and are added as they are seen.
-ALARM_TYPES = ("collapse", "level_high", "level_low", "change", "camera", "calibration")
+ALARM_TYPES = (
+    "collapse", "level_high", "level_low", "change", "camera", "coverage", "cache", "calibration",
+)
 
 
 class _Model(BaseModel):
@@ -163,6 +165,7 @@ class AlarmPayload(_Payload):
     )
     area_m2: float | None = Field(default=None, ge=0, description="collapse: affected area")
     depth_m: float | None = Field(default=None, description="collapse: deepest drop")
+    volume_m3: float | None = Field(default=None, ge=0, description="collapse: volume lost")
     value: float | None = Field(default=None, description="measured value that triggered it")
     threshold: float | None = None
 

@@ -1,0 +1,330 @@
+"""`silo-agent run`: the service. Scans on schedule and on request, one at a time.
+
+Threads: the main thread owns the loop (signals, watchdog, starting and collecting scans,
+reloads); APScheduler's thread and the MQTT network thread only hand triggers to it through
+`_wake`; a scan runs in its own worker thread so the loop keeps petting the systemd watchdog.
+A scan past its deadline is abandoned (reported as failed, its late result dropped); the
+cameras stay busy until its thread returns, so no other scan starts before.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from types import FrameType
+from zoneinfo import ZoneInfo
+
+import structlog
+
+from silo_agent.audit import AuditCache
+from silo_agent.config import Config, ConfigError, load_config
+from silo_agent.metrics import Metrics
+from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
+from silo_agent.sdnotify import Notifier
+from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand, Telemetry
+
+log = structlog.get_logger(__name__)
+
+LOOP_S = 1.0  # longest sleep of the main loop without a watchdog
+
+
+@dataclass
+class _Running:
+    scan_id: str
+    thread: threading.Thread
+    deadline: float
+    abandoned: threading.Event
+    requests: list[ScanCommand]
+    reason: str
+    started: datetime
+    outcome: Outcome | None = None
+    error: str | None = None
+    reported: bool = False
+
+
+@dataclass
+class _Pending:
+    scheduled: bool = False
+    requests: list[ScanCommand] = field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return self.scheduled or bool(self.requests)
+
+
+class Agent:
+    """The daemon. `run()` returns the exit status."""
+
+    def __init__(self, config_path: Path, config: Config, max_scans: int | None = None,
+                 notifier: Notifier | None = None) -> None:
+        self.config_path = config_path
+        self.config = config
+        self.max_scans = max_scans
+        self.notifier = notifier or Notifier.from_env()
+        self.metrics = Metrics()
+        self.telemetry = Telemetry.from_config(config)
+        self.cache = AuditCache(config.audit)
+        self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._reload = threading.Event()
+        self._pending = _Pending()
+        self._running: _Running | None = None
+        self._done = 0
+        self._last: Outcome | None = None
+        self._scheduler = None
+
+    @property
+    def last_outcome(self) -> Outcome | None:
+        """The last scan's outcome (for `run --scans N` to print)."""
+        return self._last
+
+    # ------------------------------------------------------------ triggers
+
+    def _scheduled(self) -> None:
+        """APScheduler job: ask the loop for a scan. One that falls during a scan runs right
+        after it (the 06:00 report scan is not lost to an hourly one still running); several
+        waiting coalesce into one."""
+        with self._lock:
+            if self._pending.scheduled:
+                log.info("scheduled scan coalesced with the one already waiting")
+                return
+            self._pending.scheduled = True
+        self._wake.set()
+
+    def _requested(self, command: ScanCommand) -> None:
+        """MQTT network thread: accept, or answer busy with the running scan's id."""
+        with self._lock:
+            running = self._running
+            if running is not None:
+                raise CommandRejected(f"busy: scan {running.scan_id} is running",
+                                      scan_id=running.scan_id)
+            if self._stop.is_set():
+                raise CommandRejected("the agent is stopping")
+            self._pending.requests.append(command)
+        self._wake.set()
+
+    def _signal(self, signum: int, _frame: FrameType | None) -> None:
+        if signum == signal.SIGHUP:
+            self._reload.set()
+        else:
+            self._stop.set()
+        self._wake.set()
+
+    # ------------------------------------------------------------ scheduling
+
+    def _start_scheduler(self) -> None:
+        from apscheduler.schedulers.background import BackgroundScheduler
+        from apscheduler.triggers.cron import CronTrigger
+        from apscheduler.triggers.interval import IntervalTrigger
+
+        sched = self.config.schedule
+        zone = ZoneInfo(self.config.silo.timezone)
+        scheduler = BackgroundScheduler(timezone=zone)
+        options = {"misfire_grace_time": int(max(1, sched.misfire_grace_s)), "coalesce": True,
+                   "max_instances": 1}  # fmt: skip
+        if sched.interval_s is not None:
+            scheduler.add_job(self._scheduled, IntervalTrigger(seconds=sched.interval_s,
+                                                               timezone=zone),
+                              id="interval", **options)  # fmt: skip
+        if sched.cron is not None:
+            scheduler.add_job(self._scheduled, CronTrigger.from_crontab(sched.cron, timezone=zone),
+                              id="cron", **options)  # fmt: skip
+        scheduler.start()
+        self._scheduler = scheduler
+        for job in scheduler.get_jobs():
+            log.info("scan scheduled", job=job.id, next_run=str(job.next_run_time))
+
+    def _stop_scheduler(self) -> None:
+        if self._scheduler is not None:
+            self._scheduler.shutdown(wait=False)
+            self._scheduler = None
+
+    # ------------------------------------------------------------ scans
+
+    def _start_scan(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, _Pending()
+            started = datetime.now(UTC)
+            taken = self.cache.names()
+            if self._last is not None:
+                taken.add(self._last.scan_id)
+            scan_id = new_scan_id(self.config, started, taken)
+            deadline = time.monotonic() + self.config.schedule.scan_timeout_s
+            running = _Running(scan_id, threading.Thread(), deadline, threading.Event(),
+                               pending.requests,
+                               "request" if pending.requests else "schedule", started)  # fmt: skip
+
+            def work() -> None:
+                try:
+                    running.outcome = self.pipeline.run(scan_id, started, deadline,
+                                                        running.abandoned)
+                except ScanAbandoned as exc:
+                    running.error = str(exc)
+                except Exception as exc:  # a bug in one scan must not end the service
+                    log.exception("scan crashed", scan_id=scan_id)
+                    running.error = f"internal error: {exc}"
+                finally:
+                    self._wake.set()
+
+            running.thread = threading.Thread(target=work, name=f"scan-{scan_id}", daemon=True)
+            self._running = running
+        self.notifier.status(f"scanning {scan_id}")
+        running.thread.start()
+
+    def _collect(self) -> None:
+        """Finish a scan whose thread returned, or give up on one past its deadline."""
+        running = self._running
+        if running is None:
+            return
+        if running.thread.is_alive():
+            if time.monotonic() > running.deadline and not running.reported:
+                running.abandoned.set()
+                self._report(running, f"deadline of {self.config.schedule.scan_timeout_s} s "
+                                      "exceeded; scan abandoned")  # fmt: skip
+            return
+        with self._lock:
+            self._running = None
+        if not running.reported:
+            if running.outcome is not None:
+                self._finish(running, running.outcome)
+            else:
+                self._report(running, running.error or "scan ended without a result")
+
+    def _report(self, running: _Running, error: str) -> None:
+        """A scan that ended without a result of its own (deadline, crash)."""
+        from silo_agent.pipeline import failure_summary
+
+        running.reported = True
+        log.error("scan failed", scan_id=running.scan_id, reason=error)
+        summary = failure_summary(running.scan_id, f"{running.started:%Y-%m-%dT%H:%M:%SZ}",
+                                  self.config, error, [], {})  # fmt: skip
+        try:
+            self.telemetry.publish_scan_failure(summary)
+        except Exception:
+            log.exception("cannot queue the failure report", scan_id=running.scan_id)
+        self.metrics.scans.labels("failed").inc()
+        self._finish(running, Outcome(running.scan_id, "failed", error, summary))
+
+    def _finish(self, running: _Running, outcome: Outcome) -> None:
+        running.reported = True
+        self._last = outcome
+        self._done += 1
+        for command in running.requests:
+            self.telemetry.finish_scan_request(
+                command, scan_id=outcome.scan_id,
+                error=outcome.error if outcome.outcome == "failed" else None,
+            )
+        volume = (outcome.summary or {}).get("volume_m3")
+        status = f"last scan {outcome.scan_id}: {outcome.outcome}"
+        if volume is not None:
+            status += f", {volume:.3f} m³"
+        self.notifier.status(status)
+        if self.max_scans is not None and self._done >= self.max_scans:
+            log.info("scan count reached, stopping", scans=self._done)
+            self._stop.set()
+
+    # ------------------------------------------------------------ reload
+
+    def _do_reload(self) -> None:
+        """SIGHUP: take a new config if it is valid; a bad one is logged and ignored."""
+        try:
+            new = load_config(self.config_path)
+        except ConfigError as exc:
+            log.error("config reload rejected, keeping the running config",
+                      path=str(self.config_path), error=str(exc))
+            return
+        if new.mqtt != self.config.mqtt or new.silo.id != self.config.silo.id:
+            log.warning("config reloaded; [mqtt] and silo.id changes need a restart")
+        if new.metrics != self.config.metrics:
+            log.warning("config reloaded; [metrics] changes need a restart")
+        with self._lock:
+            self.config = new
+            self.pipeline.config = new
+            self.cache.cfg = new.audit
+            self.cache.directory = Path(new.audit.directory)
+            self.pipeline.state_path = self.cache.directory / STATE_FILE
+        self._stop_scheduler()
+        self._start_scheduler()
+        log.info("config reloaded", path=str(self.config_path))
+
+    # ------------------------------------------------------------ main loop
+
+    def run(self) -> int:
+        handlers = {s: signal.signal(s, self._signal)
+                    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}  # fmt: skip
+        try:
+            return self._serve()
+        finally:
+            for s, previous in handlers.items():
+                signal.signal(s, previous)
+
+    def _serve(self) -> int:
+        config = self.config
+        self.cache.directory.mkdir(parents=True, exist_ok=True)
+        self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
+        self.metrics.serve(config.metrics)
+        self.telemetry.on_scan_request(self._requested)
+        self.telemetry.start()
+        self._start_scheduler()
+        if config.schedule.scan_at_start:
+            with self._lock:
+                self._pending.scheduled = True
+        log.info("agent started", silo=config.silo.id, config=str(self.config_path),
+                 cache=str(self.cache.directory), max_scans=self.max_scans)  # fmt: skip
+        self.notifier.ready(f"started; silo {config.silo.id}")
+        watchdog_every = (self.notifier.watchdog_s / 2) if self.notifier.watchdog_s else None
+        next_ping = 0.0
+        while True:
+            now = time.monotonic()
+            if watchdog_every is not None and now >= next_ping:
+                self.notifier.watchdog()
+                next_ping = now + watchdog_every
+            self._collect()
+            self._outbox_metrics()
+            if self._stop.is_set():
+                break
+            if self._reload.is_set() and self._running is None:  # never mid-scan
+                self._reload.clear()
+                self._do_reload()
+            with self._lock:
+                ready = bool(self._pending) and self._running is None
+            if ready:
+                self._start_scan()
+            timeout = LOOP_S  # sleep no later than the next watchdog ping is due
+            if watchdog_every is not None:
+                timeout = min(LOOP_S, max(0.0, next_ping - time.monotonic()))
+            self._wake.wait(timeout)
+            self._wake.clear()
+        return self._shutdown()
+
+    def _outbox_metrics(self) -> None:
+        pending, _ = self.telemetry.outbox.size()
+        self.metrics.outbox_pending.set(pending)
+        self.metrics.outbox_dropped.set(self.telemetry.outbox.counter("dropped"))
+
+    def _shutdown(self) -> int:
+        self.notifier.stopping()
+        log.info("agent stopping")
+        self._stop_scheduler()
+        running = self._running
+        if running is not None and running.thread.is_alive():
+            log.info("waiting for the running scan", scan_id=running.scan_id,
+                     timeout_s=self.config.schedule.stop_timeout_s)
+            running.thread.join(self.config.schedule.stop_timeout_s)
+            if running.thread.is_alive():
+                running.abandoned.set()
+                if not running.reported:
+                    self._report(running, "agent stopped during the scan; scan abandoned")
+        self._collect()
+        for command in self._pending.requests:
+            self.telemetry.finish_scan_request(command, error="the agent stopped")
+        self.telemetry.stop()  # flushes what it can within mqtt.shutdown_timeout_s, `stopped`
+        self.metrics.close()
+        self.notifier.close()
+        log.info("agent stopped", scans=self._done)
+        return 0

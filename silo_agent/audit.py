@@ -1,0 +1,271 @@
+"""The audit cache: every scan kept as a silo-scan/1 directory, bounded, replayable.
+
+A scan directory is written atomically (staging directory, fsync, rename, fsync of the parent)
+before it is processed, so a raw capture survives a crash in processing. It carries the config
+snapshot it was taken with, the software version and the SHA-256 of each cloud; the published
+result (`result.json`), the height map (`heightmap.npz`) and what processing needed besides the
+scan (`inputs.json`: the previous piles that gave pile ids) are added atomically afterwards.
+`replay` processes a cached scan again with its own settings and compares with what was
+published. Retention removes the oldest scans first, never one an alarm baseline refers to.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import io
+import json
+import os
+import shutil
+import tarfile
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from silo_agent import __version__
+from silo_agent.config import AuditConfig
+from silo_agent.heightmap import HeightMap
+from silo_agent.scan import MANIFEST, Scan, ScanError, manifest_of, write_ply
+
+log = structlog.get_logger(__name__)
+
+RESULT = "result.json"
+HEIGHTMAP = "heightmap.npz"
+INPUTS = "inputs.json"
+UNREPRODUCIBLE = ("timings", "timings_s")  # wall-clock durations: differ on every run
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write a file so that it is either absent or complete, even across a power cut."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def dump_json(data: Any) -> bytes:
+    return (json.dumps(data, allow_nan=False, indent=2) + "\n").encode()
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One cached scan."""
+
+    scan_id: str
+    path: Path
+    captured_at: datetime
+    bytes: int
+
+
+def _tree_bytes(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+class AuditCache:
+    """Scan directories under `audit.directory`, bounded by `max_bytes` and `max_age_days`."""
+
+    def __init__(self, cfg: AuditConfig) -> None:
+        self.cfg = cfg
+        self.directory = Path(cfg.directory)
+
+    # ------------------------------------------------------------ writing
+
+    def write_scan(self, scan: Scan, config_snapshot: dict[str, Any]) -> Path:
+        """Write the raw scan atomically with its config snapshot, version and cloud hashes.
+
+        Raises OSError (ENOSPC on a full disk) with nothing left behind."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        target = self.directory / scan.scan_id
+        if target.exists():
+            raise ScanError(f"{target}: already exists; scans are never overwritten")
+        staging = Path(tempfile.mkdtemp(prefix=f".{scan.scan_id}.", dir=self.directory))
+        try:
+            hashes = {}
+            for camera in scan.cameras:
+                path = staging / f"{camera.serial}.ply"
+                write_ply(path, camera.points, camera.colors)
+                hashes[camera.serial] = sha256_of(path)
+            manifest = manifest_of(scan)
+            for entry in manifest["cameras"]:
+                entry["cloud_sha256"] = hashes[entry["serial"]]
+            config_text = json.dumps(config_snapshot, sort_keys=True, separators=(",", ":"))
+            manifest["software_version"] = __version__
+            manifest["config"] = config_snapshot
+            manifest["config_sha256"] = hashlib.sha256(config_text.encode()).hexdigest()
+            (staging / MANIFEST).write_bytes(dump_json(manifest))
+            for item in staging.iterdir():
+                with open(item, "rb") as handle:
+                    os.fsync(handle.fileno())
+            os.rename(staging, target)
+            _fsync_dir(self.directory)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        return target
+
+    @staticmethod
+    def add_result(directory: Path, summary: dict[str, Any], heightmap: HeightMap | None,
+                   inputs: dict[str, Any]) -> None:
+        """Keep the published result, its height map and processing inputs with the scan."""
+        write_atomic(directory / INPUTS, dump_json(inputs))
+        if heightmap is not None:
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, origin=np.asarray(heightmap.origin),
+                                step=np.asarray(heightmap.step), heights=heightmap.heights,
+                                observed=heightmap.observed, inside=heightmap.inside)  # fmt: skip
+            write_atomic(directory / HEIGHTMAP, buffer.getvalue())
+        write_atomic(directory / RESULT, dump_json(summary))
+
+    # ------------------------------------------------------------ reading
+
+    def entries(self) -> list[Entry]:
+        """Cached scans, oldest first (staging directories and strays are not scans)."""
+        if not self.directory.is_dir():
+            return []
+        out = []
+        for path in self.directory.iterdir():
+            if path.name.startswith(".") or not (path / MANIFEST).is_file():
+                continue
+            try:
+                manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+                when = datetime.fromisoformat(manifest["captured_at"].replace("Z", "+00:00"))
+            except (OSError, ValueError, KeyError, TypeError):
+                when = datetime.fromtimestamp(path.stat().st_mtime, UTC)
+            out.append(Entry(path.name, path, when, _tree_bytes(path)))
+        return sorted(out, key=lambda e: (e.captured_at, e.scan_id))
+
+    def names(self) -> set[str]:
+        """Names taken in the cache directory (cheap: no manifest read, no sizes)."""
+        if not self.directory.is_dir():
+            return set()
+        return {p.name for p in self.directory.iterdir()}
+
+    def find(self, scan_id: str) -> Path:
+        path = self.directory / scan_id
+        if "/" in scan_id or scan_id.startswith(".") or not (path / MANIFEST).is_file():
+            raise ScanError(f"{scan_id}: no such scan in {self.directory}")
+        return path
+
+    def heightmap(self, scan_id: str) -> HeightMap | None:
+        """The height map kept with a cached scan; None if the scan or the map is gone."""
+        path = self.directory / scan_id / HEIGHTMAP
+        try:
+            with np.load(path) as data:
+                return HeightMap(
+                    origin=(float(data["origin"][0]), float(data["origin"][1])),
+                    step=float(data["step"]), heights=data["heights"],
+                    observed=data["observed"].astype(bool), inside=data["inside"],
+                )
+        except (OSError, KeyError, ValueError):
+            return None
+
+    # ------------------------------------------------------------ retention
+
+    def _remove(self, entry: Entry, why: str) -> None:
+        shutil.rmtree(entry.path, ignore_errors=True)
+        log.info("audit scan removed", scan_id=entry.scan_id, reason=why, bytes=entry.bytes)
+
+    def enforce(self, protected: Iterable[str] = (), now: datetime | None = None) -> list[str]:
+        """Remove scans past `max_age_days`, then oldest first while over `max_bytes`;
+        `protected` scans (alarm baselines) stay. Returns the ids removed."""
+        keep = set(protected)
+        now = now or datetime.now(UTC)
+        cutoff = now - timedelta(days=self.cfg.max_age_days)
+        removed = []
+        entries = self.entries()
+        total = sum(e.bytes for e in entries)
+        for entry in entries:
+            if entry.scan_id in keep:
+                continue
+            if entry.captured_at < cutoff:
+                why = "older than audit.max_age_days"
+            elif total > self.cfg.max_bytes:
+                why = "audit.max_bytes exceeded"
+            else:
+                continue
+            self._remove(entry, why)
+            total -= entry.bytes
+            removed.append(entry.scan_id)
+        self._clean_staging()
+        return removed
+
+    def evict_for_space(self, protected: Iterable[str] = (), share: float = 0.1) -> list[str]:
+        """Disk full: remove the oldest `share` of the unprotected scans (at least one)."""
+        keep = set(protected)
+        candidates = [e for e in self.entries() if e.scan_id not in keep]
+        count = max(1, int(len(candidates) * share)) if candidates else 0
+        for entry in candidates[:count]:
+            self._remove(entry, "disk full")
+        self._clean_staging()
+        return [e.scan_id for e in candidates[:count]]
+
+    def _clean_staging(self) -> None:
+        """Staging directories left by a crash mid-write."""
+        if self.directory.is_dir():
+            for path in self.directory.glob(".*"):
+                if path.is_dir():
+                    shutil.rmtree(path, ignore_errors=True)
+
+    # ------------------------------------------------------------ export
+
+    def export(self, scan_id: str, out: Path) -> Path:
+        """A .tar.gz of one scan directory, for a support ticket or another machine."""
+        path = self.find(scan_id)
+        with tarfile.open(out, "w:gz") as tar:
+            tar.add(path, arcname=scan_id)
+        return out
+
+
+def is_disk_full(exc: OSError) -> bool:
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+# ---------------------------------------------------------------- replay
+
+
+def comparable(summary: dict[str, Any]) -> dict[str, Any]:
+    """The published result without what legitimately differs run to run (timings)."""
+    return {k: v for k, v in summary.items() if k not in UNREPRODUCIBLE}
+
+
+def differences(published: dict[str, Any], again: dict[str, Any], prefix: str = "") -> list[str]:
+    """`key: published -> replayed` for every leaf that is not identical (floats bit for bit,
+    compared through their shortest round-trip repr)."""
+    out = []
+    for key in sorted(set(published) | set(again)):
+        a, b = published.get(key, "<absent>"), again.get(key, "<absent>")
+        name = f"{prefix}{key}"
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += differences(a, b, name + ".")
+        elif json.dumps(a, sort_keys=True) != json.dumps(b, sort_keys=True):
+            out.append(f"{name}: published {json.dumps(a)} -> replayed {json.dumps(b)}")
+    return out

@@ -1,0 +1,326 @@
+"""One scan of the daemon: capture -> audit -> reconstruct + detect -> alarms -> publish.
+
+Each stage is timed; a stage that fails is reported (log, `P/scan` with the reason, status,
+metrics) and the scan ends there, the agent carries on. Stage boundaries check the scan's
+deadline and whether the agent gave up on it (shutdown, deadline), so an abandoned scan never
+publishes.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from silo_agent import __version__
+from silo_agent.alarms import DETECTORS, AlarmState, Inputs, evaluate
+from silo_agent.audit import RESULT, AuditCache, dump_json, is_disk_full, write_atomic
+from silo_agent.capture import CameraFailure, capture_all
+from silo_agent.config import Config
+from silo_agent.metrics import Metrics
+from silo_agent.reconstruct import Result, site_from_config
+from silo_agent.scan import Scan, ScanError
+from silo_agent.telemetry.mqtt import Telemetry
+
+log = structlog.get_logger(__name__)
+
+STATE_FILE = "alarm-state.json"  # in audit.directory, next to the scans it refers to
+
+
+class ScanAbandoned(Exception):
+    """The deadline passed or the agent is stopping: the scan must not publish."""
+
+
+@dataclass
+class Outcome:
+    scan_id: str
+    outcome: str  # ok | invalid | failed
+    error: str | None = None
+    summary: dict[str, Any] | None = None
+    directory: Path | None = None
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+
+def new_scan_id(config: Config, started: datetime, taken: set[str]) -> str:
+    """`<silo>-<UTC yyyymmddThhmmssZ>`, suffixed when that second already has a scan."""
+    base = f"{config.silo.id}-{started:%Y%m%dT%H%M%SZ}"
+    scan_id, k = base, 1
+    while scan_id in taken:
+        scan_id, k = f"{base}-{k}", k + 1
+    return scan_id
+
+
+def published_summary(result: Result, scan: Scan, failures: list[CameraFailure],
+                      timings: dict[str, float]) -> dict[str, Any]:
+    """The result as published on `P/scan` and kept as `result.json`."""
+    summary = result.summary()
+    summary["captured_at"] = scan.captured_at
+    summary["degraded"] = bool(failures)
+    summary["cameras"] = {"used": [c.serial for c in scan.cameras],
+                          "failed": [{"serial": f.serial, "error": f.error} for f in failures]}
+    summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
+    return summary
+
+
+def failure_summary(scan_id: str, captured_at: str, config: Config, reason: str,
+                    failures: list[CameraFailure], timings: dict[str, float]) -> dict[str, Any]:
+    """A `P/scan` for a scan that produced no result."""
+    return {
+        "scan_id": scan_id, "captured_at": captured_at, "method": config.reconstruction.method,
+        "volume_m3": None, "mass_t": None, "coverage": 0.0,
+        "grid_step_m": config.reconstruction.grid_step_m,
+        "surface": None, "level": None, "valid": False, "invalid_reason": reason,
+        "degraded": bool(failures),
+        "cameras": {"used": [], "failed": [{"serial": f.serial, "error": f.error}
+                                           for f in failures]},
+        "piles": [], "timings": {k: round(v, 4) for k, v in timings.items()},
+    }  # fmt: skip
+
+
+class Pipeline:
+    """Runs scans for the agent; holds what carries from scan to scan (alarm state, piles)."""
+
+    def __init__(self, config: Config, telemetry: Telemetry, cache: AuditCache,
+                 metrics: Metrics) -> None:
+        self.config = config
+        self.telemetry = telemetry
+        self.cache = cache
+        self.metrics = metrics
+        self.state_path = cache.directory / STATE_FILE
+        self.state = self._load_state()
+        self._baseline_map: tuple[str, Any] | None = None
+        self.count = 0  # scans started since the agent started (drives sim sequences)
+
+    def _load_state(self) -> AlarmState:
+        try:
+            return AlarmState.from_json(json.loads(self.state_path.read_text(encoding="utf-8")))
+        except FileNotFoundError:
+            return AlarmState()
+        except (OSError, ValueError, TypeError, AttributeError) as exc:
+            log.warning("alarm state unreadable, starting afresh", path=str(self.state_path),
+                        error=str(exc))
+            return AlarmState()
+
+    def _save_state(self) -> None:
+        try:
+            self.cache.directory.mkdir(parents=True, exist_ok=True)
+            write_atomic(self.state_path, dump_json(self.state.to_json()))
+        except OSError as exc:
+            log.error("cannot save the alarm state", path=str(self.state_path), error=str(exc))
+
+    def protected(self) -> set[str]:
+        """Scans retention must keep: the collapse baseline."""
+        ids = {self.state.baseline_scan_id, self.config.alarms.baseline_scan_id}
+        return {i for i in ids if i}
+
+    def _baseline(self) -> Any:
+        scan_id = self.config.alarms.baseline_scan_id or self.state.baseline_scan_id
+        if scan_id is None:
+            return None
+        if self._baseline_map is None or self._baseline_map[0] != scan_id:
+            self._baseline_map = (scan_id, self.cache.heightmap(scan_id))
+        return self._baseline_map[1]
+
+    def _previous_piles(self) -> list[Any]:
+        from silo_agent.detect import Pile
+
+        for entry in reversed(self.cache.entries()):
+            try:
+                summary = json.loads((entry.path / RESULT).read_text(encoding="utf-8"))
+                return [Pile.from_json(p) for p in summary.get("piles") or []]
+            except FileNotFoundError:
+                continue
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                log.warning("no pile ids carried over", scan_id=entry.scan_id, error=str(exc))
+                return []
+        return []
+
+    # ------------------------------------------------------------ one scan
+
+    def run(self, scan_id: str, started: datetime, deadline: float,
+            abandoned: threading.Event) -> Outcome:
+        """One scan; never raises except ScanAbandoned."""
+        config = self.config
+        captured_at = f"{started:%Y-%m-%dT%H:%M:%SZ}"
+        timings: dict[str, float] = {}
+        scan_number = self.count
+        self.count += 1
+
+        def check() -> None:
+            if abandoned.is_set():
+                raise ScanAbandoned("the agent gave up on this scan")
+            if time.monotonic() > deadline:
+                raise ScanAbandoned(f"deadline of {config.schedule.scan_timeout_s} s exceeded")
+
+        def lap(stage: str, since: float) -> float:
+            now = time.perf_counter()
+            timings[f"{stage}_s"] = now - since
+            self.metrics.stage_seconds.labels(stage).observe(now - since)
+            return now
+
+        t = time.perf_counter()
+        log.info("scan started", scan_id=scan_id)
+        capture = capture_all(config, scan_number)
+        t = lap("capture", t)
+        cameras = {c.serial: ("ok", None) for c in capture.clouds}
+        cameras.update({f.serial: ("failed", f.error) for f in capture.failures})
+        for serial, (state, _error) in cameras.items():
+            self.metrics.camera_up.labels(serial).set(1 if state == "ok" else 0)
+        self.telemetry.set_status(cameras=cameras)
+        for failure in capture.failures:
+            log.warning("camera failed", scan_id=scan_id, serial=failure.serial,
+                        error=failure.error)
+        check()
+        failed = tuple((f.serial, f.error) for f in capture.failures)
+        if not capture.clouds:
+            return self._failed(scan_id, captured_at, "capture: no camera delivered a cloud",
+                                capture.failures, timings, failed)
+
+        scan = Scan(
+            scan_id=scan_id, captured_at=captured_at, silo_id=config.silo.id,
+            site=site_from_config(config), cameras=capture.clouds,
+            reconstruction=config.reconstruction.model_dump(mode="json"),
+            extra={"software_version": __version__, "degraded": capture.degraded,
+                   "failures": [{"serial": f.serial, "error": f.error}
+                                for f in capture.failures]},
+        )  # fmt: skip
+        directory, cache_full = self._write(scan)
+        t = lap("audit", t)
+        check()
+
+        previous = self._previous_piles()
+        try:
+            from silo_agent.detect import analyse
+
+            result = analyse(scan, config.reconstruction, config.detection, previous=previous,
+                             calibration=config.calibration)
+        except Exception as exc:  # a bug or a bad model must not stop the agent
+            log.exception("processing failed", scan_id=scan_id)
+            return self._failed(scan_id, captured_at, f"processing: {exc}", capture.failures,
+                                timings, failed, cache_full)
+        t = lap("reconstruct", t)
+        check()
+        summary = published_summary(result, scan, capture.failures, timings)
+        surface = summary.get("surface") or {}
+        inputs = Inputs(
+            scan_id=scan_id, heightmap=result.heightmap, volume_m3=result.volume_m3,
+            coverage=result.coverage, valid=result.valid, floor_z=config.silo.floor_z,
+            ceiling_z=config.silo.ceiling_z, max_z=surface.get("max_z"),
+            failed_cameras=failed, cache_full=cache_full, baseline=self._baseline(),
+            baseline_scan_id=self.config.alarms.baseline_scan_id or self.state.baseline_scan_id,
+        )
+        events, state = evaluate(self.state, inputs, config.alarms)
+        t = lap("alarms", t)
+        check()
+
+        summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
+        self.state = state
+        self._save_state()
+        self._publish(summary, result, events)
+        if directory is not None:
+            inputs_json = {"previous_piles": [p.to_json() for p in previous]}
+            try:
+                self.cache.add_result(directory, summary, result.heightmap, inputs_json)
+            except OSError as exc:
+                log.error("cannot keep the result with the scan", scan_id=scan_id,
+                          error=str(exc))
+        lap("publish", t)
+        self.cache.enforce(self.protected())
+        outcome = "ok" if result.valid else "invalid"
+        self._count(outcome, result)
+        log.info("scan finished", scan_id=scan_id, outcome=outcome, volume_m3=result.volume_m3,
+                 coverage=round(result.coverage, 4), alarms=[
+                     f"{e['type']}:{e['state']}" for e in events])  # fmt: skip
+        return Outcome(scan_id, outcome, result.invalid_reason, summary, directory, events)
+
+    def _write(self, scan: Scan) -> tuple[Path | None, bool]:
+        """The raw scan into the cache; on a full disk evict and retry once, then go on
+        uncached (the `cache` alarm says so)."""
+        snapshot = self.config.model_dump(mode="json")
+        for attempt in range(2):
+            try:
+                return self.cache.write_scan(scan, snapshot), False
+            except OSError as exc:
+                if not is_disk_full(exc):
+                    log.error("cannot write the scan to the audit cache", scan_id=scan.scan_id,
+                              error=str(exc))
+                    return None, True
+                if attempt == 0:
+                    removed = self.cache.evict_for_space(self.protected())
+                    log.warning("disk full, evicted scans", removed=removed)
+            except ScanError as exc:
+                log.error("cannot write the scan", scan_id=scan.scan_id, error=str(exc))
+                return None, True
+        log.error("disk still full, scan published uncached", scan_id=scan.scan_id)
+        return None, True
+
+    def _failed(self, scan_id: str, captured_at: str, reason: str,
+                failures: list[CameraFailure], timings: dict[str, float],
+                failed: tuple[tuple[str, str], ...], cache_full: bool = False) -> Outcome:
+        summary = failure_summary(scan_id, captured_at, self.config, reason, failures, timings)
+        inputs = Inputs(scan_id=scan_id, heightmap=None, volume_m3=None, coverage=0.0,
+                        valid=False, failed_cameras=failed, cache_full=cache_full,
+                        reconstructed=False)
+        events, self.state = evaluate(self.state, inputs, self.config.alarms)
+        self._save_state()
+        try:
+            self.telemetry.publish_scan_failure(summary)
+            for event in events:
+                self.telemetry.publish_alarm(event)
+        except Exception:
+            log.exception("cannot queue the failure report", scan_id=scan_id)
+        self._count("failed", None)
+        log.error("scan failed", scan_id=scan_id, reason=reason)
+        return Outcome(scan_id, "failed", reason, summary, None, events)
+
+    def _publish(self, summary: dict[str, Any], result: Result,
+                 events: list[dict[str, Any]]) -> None:
+        self.telemetry.publish_result(summary, result.heightmap)
+        for event in events:
+            self.telemetry.publish_alarm(event)
+            log.warning("alarm", **{k: v for k, v in event.items() if k != "message"},
+                        text=event["message"])
+
+    def _count(self, outcome: str, result: Result | None) -> None:
+        m = self.metrics
+        m.scans.labels(outcome).inc()
+        if result is not None:
+            m.coverage.set(result.coverage)
+            if result.valid and result.volume_m3 is not None:
+                m.volume.set(result.volume_m3)
+        for kind in self.state.active:
+            m.alarm_active.labels(kind).set(1)
+        for kind in set(DETECTORS) - set(self.state.active):
+            m.alarm_active.labels(kind).set(0)
+
+
+def replay_summary(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(published, replayed) results of a cached scan, processed again with its own settings
+    (reconstruction, detection, site, previous piles) as the agent processed it."""
+    from silo_agent.config import DetectionConfig, ReconstructionConfig
+    from silo_agent.detect import Pile, analyse
+    from silo_agent.scan import read_scan
+
+    scan = read_scan(directory)
+    try:
+        published = json.loads((directory / RESULT).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ScanError(f"{directory / RESULT}: the scan has no published result") from None
+    snapshot = scan.extra.get("config") or {}
+    settings = ReconstructionConfig.model_validate(scan.reconstruction)
+    detection = DetectionConfig.model_validate(snapshot.get("detection") or {})
+    try:
+        inputs = json.loads((directory / "inputs.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        inputs = {}
+    previous = [Pile.from_json(p) for p in inputs.get("previous_piles") or []]
+    result = analyse(scan, settings, detection, previous=previous)
+    failures = [CameraFailure(f["serial"], f["error"]) for f in scan.extra.get("failures", [])]
+    again = published_summary(result, scan, failures, {})
+    return published, again

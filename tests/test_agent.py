@@ -1,0 +1,471 @@
+"""`silo-agent run` end to end: a real subprocess on simulated cameras, the test's own mosquitto
+(never 1883), a unix socket standing in for systemd. Schedules, on-request scans, single
+flight, signals, the will and the outbox across a SIGKILL, collapse alarms on a scene that
+changes, retention and replay of what the daemon cached."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+from agent_support import BASE, Daemon, NotifySocket, write_config
+from mqtt_broker import free_port
+from mqtt_support import validate_json
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+REPLIES = "test/replies"
+counter = itertools.count()
+
+
+def request(col, payload: bytes) -> bytes:
+    """Publish a scan request with a response topic and fresh correlation data."""
+    correlation = f"corr-{next(counter)}".encode()
+    props = Properties(PacketTypes.PUBLISH)
+    props.ResponseTopic = REPLIES
+    props.CorrelationData = correlation
+    col.publish(f"{BASE}/cmd/scan", payload, props)
+    return correlation
+
+
+def replies(col, correlation: bytes, count: int = 1, timeout: float = 30) -> list[dict]:
+    col.wait_for(lambda ms: sum(m.topic == REPLIES and m.properties.CorrelationData == correlation
+                                for m in ms) >= count, timeout)  # fmt: skip
+    return [validate_json(m.payload) for m in col.on(REPLIES)
+            if m.properties.CorrelationData == correlation]  # fmt: skip
+
+
+def stamp(entry: dict) -> float:
+    return datetime.fromisoformat(entry["timestamp"].replace("Z", "+00:00")).timestamp()
+
+
+def idle(agent: Daemon, timeout: float = 30) -> None:
+    """Wait until every started scan has finished."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        log = agent.log()
+        started = sum(e.get("event") == "scan started" for e in log)
+        ended = sum(e.get("event") in ("scan finished", "scan failed") for e in log)
+        if started == ended:
+            return
+        time.sleep(0.05)
+    raise AssertionError("the agent stayed busy")
+
+
+def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    notify = NotifySocket(tmp_path / "notify.sock")
+    metrics_port = free_port()
+    config = tmp_path / "agent.toml"
+    write_config(config, broker.port, tmp_path, schedule={"interval_s": 2, "scan_at_start": True},
+                 simulation={"capture_s": 0.2}, metrics={"enabled": True, "port": metrics_port})
+    col = collector_factory(broker, [f"{BASE}/#", REPLIES])
+    agent = Daemon(config, tmp_path,
+                   env={"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "2000000"})
+    try:
+        # --- scheduled: one at start, then on the 2 s ticks (a tick during the first, slow
+        # scan, which builds the simulated world, starts the next right after it)
+        starts = [stamp(e) for e in agent.wait_log("scan started", 4, timeout=40)]
+        t0 = stamp(agent.wait_log("agent started")[0])
+        assert starts[3] - starts[2] == pytest.approx(2.0, abs=0.3)
+        for t in starts[2:4]:
+            assert abs((t - t0 + 1.0) % 2.0 - 1.0) < 0.3  # on a tick of the interval
+        col.wait_topic(f"{BASE}/scan", 3)
+        status = validate_json(col.on(f"{BASE}/status")[-1].payload)
+        assert status["state"] == "online"
+
+        # --- reload a valid config: no schedule any more, slower captures
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False},
+                     simulation={"capture_s": 1.0},
+                     metrics={"enabled": True, "port": metrics_port})
+        agent.signal(signal.SIGHUP)
+        agent.wait_log("config reloaded")
+        time.sleep(0.3)  # a scheduled scan that was waiting starts right after the reload
+        idle(agent)
+        before = len(agent.wait_log("scan started"))
+
+        # --- on request: accepted with our correlation data, later done with the scan id
+        first = request(col, b'{"request_id": "r-1"}')
+        (accepted,) = replies(col, first)
+        assert accepted["status"] == "accepted" and accepted["request_id"] == "r-1"
+        agent.wait_log("scan started", before + 1)
+        busy = request(col, b'{"request_id": "r-2"}')  # while r-1's scan captures
+        (refused,) = replies(col, busy)
+        done = replies(col, first, 2)[1]
+        assert done["status"] == "done" and done["request_id"] == "r-1"
+        assert refused["status"] == "error" and refused["accepted"] is False
+        assert "busy" in refused["error"] and refused["scan_id"] == done["scan_id"]
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
+                                    and json.loads(m.payload)["scan_id"] == done["scan_id"]
+                                    for m in ms))  # fmt: skip
+        time.sleep(2.5)  # the old 2 s schedule is gone: no scan starts by itself
+        assert len(agent.log()) and len(agent.wait_log("scan started")) == before + 1
+
+        # --- a bad command gets an error reply, the agent carries on
+        (bad,) = replies(col, request(col, b"{not json"))
+        assert bad["status"] == "error" and "invalid JSON" in bad["error"]
+
+        # --- metrics
+        idle(agent)
+        text = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=5) \
+            .read().decode()  # fmt: skip
+        scans = len(agent.wait_log("scan finished"))
+        assert scans >= 5
+        assert f'silo_agent_scans_total{{outcome="ok"}} {scans}.0' in text
+        assert f'silo_agent_stage_duration_seconds_count{{stage="capture"}} {scans}.0' in text
+        assert 'silo_agent_camera_up{serial="sim-A2"} 1.0' in text
+        assert "silo_agent_last_volume_m3 4" in text  # ~43.2 m³ of flat grain
+        assert "silo_agent_outbox_pending" in text
+
+        # --- SIGHUP with a bad config: rejected, the old one stays
+        config.write_text(config.read_text() + "\n[bogus]\nkey = 1\n")
+        agent.signal(signal.SIGHUP)
+        (rejected,) = agent.wait_log("config reload rejected, keeping the running config")
+        assert "bogus: unknown key" in rejected["error"]
+        third = request(col, b'{"request_id": "r-3"}')
+        assert [r["status"] for r in replies(col, third, 2)] == ["accepted", "done"]
+
+        # --- SIGTERM: `stopped`, exit 0
+        agent.signal(signal.SIGTERM)
+        assert agent.wait(20) == 0
+    finally:
+        agent.kill()
+        notify.close()
+    col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
+                                and json.loads(m.payload)["state"] == "stopped" for m in ms))
+    fields = notify.fields()
+    assert fields[0] == "READY=1"
+    assert fields.index("STOPPING=1") > fields.index("READY=1")
+    assert any(f.startswith("STATUS=last scan silo-d-") and "m³" in f for f in fields)
+    pings = [t for t, m in notify.messages if m == "WATCHDOG=1"]
+    gaps = [b - a for a, b in itertools.pairwise(pings)]
+    assert len(pings) >= 6
+    assert 0.9 < sorted(gaps)[len(gaps) // 2] < 1.1  # every 1 s: half of WATCHDOG_USEC
+    assert max(gaps) < 1.5  # never near the 2 s after which systemd kills the service
+
+
+def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                          schedule={"scan_at_start": False})
+    col = collector_factory(broker, [f"{BASE}/#"])
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("agent started")
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
+                                    and json.loads(m.payload)["state"] == "online" for m in ms))
+        time.sleep(0.5)
+        assert not any(e.get("event") == "scan started" for e in agent.log())  # scan_at_start off
+        agent.signal(signal.SIGKILL)
+        agent.wait()
+        col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
+                     == "offline")  # the Last Will
+
+        broker.kill()  # the broker is down while the agent scans
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": True})
+        agent = Daemon(config, tmp_path)
+        (finished,) = agent.wait_log("scan finished", timeout=40)
+        agent.signal(signal.SIGKILL)
+        agent.wait()
+        pending = finished["scan_id"]
+        assert not any(json.loads(m.payload).get("scan_id") == pending
+                       for m in col.on(f"{BASE}/scan"))  # fmt: skip
+
+        broker.start()
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False})
+        agent = Daemon(config, tmp_path)
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
+                                    and json.loads(m.payload)["scan_id"] == pending for m in ms),
+                     timeout=30)  # fmt: skip
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/volume"
+                                    and json.loads(m.payload)["scan_id"] == pending for m in ms))
+        agent.signal(signal.SIGINT)  # Ctrl-C stops as cleanly as SIGTERM
+        assert agent.wait(20) == 0
+        col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
+                     == "stopped")  # fmt: skip
+    finally:
+        agent.kill()
+
+
+def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    sequence = ["flat", "flat", "crater", "crater", "flat", "flat"]
+    max_bytes = 6_000_000  # about three scans of two 424x240 clouds
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                          schedule={"interval_s": 0.2, "scan_at_start": True},
+                          simulation={"sequence": sequence}, audit={"max_bytes": max_bytes})
+    col = collector_factory(broker, [f"{BASE}/#"])
+    agent = Daemon(config, tmp_path, "--scans", str(len(sequence)))
+    try:
+        assert agent.wait(90) == 0
+    finally:
+        agent.kill()
+    scan_ids = [e["scan_id"] for e in agent.log() if e.get("event") == "scan finished"]
+    assert len(scan_ids) == len(sequence)
+    assert agent.out_path.read_text().startswith(f"scan      {scan_ids[-1]}")  # printed result
+
+    col.wait_for(lambda ms: sum(m.topic == f"{BASE}/alarm" for m in ms) >= 2)
+    time.sleep(0.5)  # anything else that would come
+    events = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
+    assert [(e["type"], e["state"], e["scan_id"]) for e in events] == [
+        ("collapse", "raised", scan_ids[2]),  # the funnel opened
+        ("collapse", "cleared", scan_ids[4]),  # and was filled again
+    ]  # and the unchanged scans (noise differs scan to scan) raised nothing
+    raised = events[0]
+    x, y = raised["position"]
+    assert ((x - 0.4) ** 2 + (y + 0.3) ** 2) ** 0.5 < 0.2  # the crater scene's funnel centre
+    assert raised["depth_m"] > 0.3 and raised["area_m2"] > 1.0 and raised["severity"] == "critical"
+    retained = validate_json(col.on(f"{BASE}/alarm/collapse")[-1].payload)
+    assert retained["state"] == "cleared"
+
+    # the cache stayed within its bound and kept the collapse baseline while it was in use
+    scans = tmp_path / "scans"
+    kept = sorted(p.name for p in scans.iterdir() if (p / "scan.json").is_file())
+    assert len(kept) < len(sequence)
+    assert sum(f.stat().st_size for f in scans.rglob("*") if f.is_file()
+               and f.parent != scans) <= max_bytes  # fmt: skip
+    state = json.loads((scans / "alarm-state.json").read_text())
+    assert state["baseline_scan_id"] == scan_ids[-1] and state["baseline_scan_id"] in kept
+
+    # replay: the same result, bit for bit; a tampered result is caught
+    last = scans / scan_ids[-1]
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "replay", scan_ids[-1], "--config",
+                          str(config)], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "identical" in run.stdout
+    published = json.loads((last / "result.json").read_text())
+    assert published["volume_m3"] == json.loads(col.on(f"{BASE}/volume")[-1].payload)[
+        "volume_m3"]  # what was kept is what was published
+    published["volume_m3"] = math.nextafter(published["volume_m3"], math.inf)  # one ulp off
+    (last / "result.json").write_text(json.dumps(published))
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "replay", str(last)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1
+    assert "volume_m3: published" in run.stdout
+
+    listing = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "list", "--config",
+                              str(config)], capture_output=True, text=True, timeout=60)
+    assert listing.returncode == 0
+    assert [line.split()[0] for line in listing.stdout.splitlines()[:-1]] == kept
+    shown = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "show", kept[0],
+                            "--config", str(config)], capture_output=True, text=True, timeout=60)
+    report = json.loads(shown.stdout)
+    assert report["manifest"]["scan_id"] == kept[0] and "config" not in report["manifest"]
+    assert report["manifest"]["config_sha256"] and report["result"]["scan_id"] == kept[0]
+    out = tmp_path / "export.tar.gz"
+    exported = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "export", kept[0],
+                               "--config", str(config), "--out", str(out)],
+                              capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert exported.returncode == 0 and out.stat().st_size > 100_000
+
+
+def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                          schedule={"scan_at_start": False, "scan_timeout_s": 1.5,
+                                    "stop_timeout_s": 0.5},
+                          simulation={"capture_s": 2.0})  # two cameras: 4 s, past the deadline
+    col = collector_factory(broker, [f"{BASE}/#", REPLIES])
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("agent started")
+        first = request(col, b'{"request_id": "slow"}')
+        accepted, failed = replies(col, first, 2)
+        assert accepted["status"] == "accepted"
+        assert failed["status"] == "error" and "deadline" in failed["error"]
+        report = next(validate_json(m.payload) for m in col.on(f"{BASE}/scan")
+                      if json.loads(m.payload)["scan_id"] == failed["scan_id"])  # fmt: skip
+        assert report["valid"] is False and "deadline of 1.5 s exceeded" in report["invalid_reason"]
+        # the abandoned scan still holds the cameras: busy until its capture returns
+        (busy,) = replies(col, request(col, b'{"request_id": "next"}'))
+        assert busy["status"] == "error" and busy["scan_id"] == failed["scan_id"]
+        agent.wait_log("scan started")
+        idle_until = time.monotonic() + 10
+        while time.monotonic() < idle_until:  # the stuck thread returns and frees the cameras
+            (reply,) = replies(col, request(col, b'{"request_id": "again"}'))
+            if reply["status"] == "accepted":
+                break
+            time.sleep(0.3)
+        assert reply["status"] == "accepted"
+        agent.wait_log("scan started", 2)
+        t0 = time.monotonic()
+        agent.signal(signal.SIGTERM)  # mid-capture: waits stop_timeout_s, then gives up
+        assert agent.wait(20) == 0
+        assert time.monotonic() - t0 < 6
+    finally:
+        agent.kill()
+    assert agent.wait_log("scan failed", 2)[-1]["reason"] == \
+        "agent stopped during the scan; scan abandoned"  # fmt: skip
+    col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
+                 == "stopped")  # fmt: skip
+
+
+def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    col = collector_factory(broker, [f"{BASE}/#"])
+    cameras = (("sim-A2", "A2"), ("sim-A6", "A6"), ("broken", None))
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path, cameras=cameras)
+    agent = Daemon(config, tmp_path, "--scans", "1")
+    try:
+        assert agent.wait(60) == 0
+    finally:
+        agent.kill()
+    col.wait_topic(f"{BASE}/scan")
+    degraded = validate_json(col.on(f"{BASE}/scan")[-1].payload)
+    assert degraded["valid"] is True and degraded["degraded"] is True
+    assert degraded["cameras"]["used"] == ["sim-A2", "sim-A6"]
+    (failed,) = degraded["cameras"]["failed"]
+    assert failed["serial"] == "broken" and "needs view" in failed["error"]
+    col.wait_topic(f"{BASE}/alarm")
+    (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
+    assert (alarm["type"], alarm["state"]) == ("camera", "raised") and "broken" in alarm["message"]
+    col.wait_for(lambda ms: any(m.topic == f"{BASE}/status" and any(
+        c["serial"] == "broken" and c["state"] == "failed"
+        for c in json.loads(m.payload)["cameras"]) for m in ms))  # fmt: skip
+
+    # no camera at all: the scan fails, is reported on P/scan, the agent goes on and stops cleanly
+    write_config(config, broker.port, tmp_path, cameras=(("broken", None),),
+                 schedule={"interval_s": 0.2, "scan_at_start": True})
+    agent = Daemon(config, tmp_path, "--scans", "2")
+    try:
+        assert agent.wait(60) == 0
+    finally:
+        agent.kill()
+    assert [e["reason"] for e in agent.log() if e.get("event") == "scan failed"] == [
+        "capture: no camera delivered a cloud"] * 2
+    col.wait_topic(f"{BASE}/scan", 3)
+    report = validate_json(col.on(f"{BASE}/scan")[-1].payload)
+    assert report["valid"] is False and report["volume_m3"] is None
+    assert report["invalid_reason"] == "capture: no camera delivered a cloud"
+    volume = validate_json(col.on(f"{BASE}/volume")[-1].payload)
+    assert volume["scan_id"] == degraded["scan_id"]  # the retained figure stays the last good one
+    assert len(col.on(f"{BASE}/alarm")) == 1  # camera still raised; no coverage alarm on top
+
+
+def test_full_disk_publishes_uncached_with_a_cache_alarm(
+        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2600k", "tmpfs", str(disk)], check=True)
+    try:
+        config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
+                              schedule={"interval_s": 1.0, "scan_at_start": True},
+                              simulation={"capture_s": 0.6},  # a scan outlasts the interval
+                              audit={"directory": str(disk / "scans")})  # one scan fits
+        col = collector_factory(broker, [f"{BASE}/#"])
+        agent = Daemon(config, tmp_path, "--scans", "2")
+        try:
+            assert agent.wait(60) == 0
+        finally:
+            agent.kill()
+        log = agent.log()
+        first, second = [e["scan_id"] for e in log if e.get("event") == "scan finished"]
+        # the tick that fell during the first scan was not lost: the second followed at once
+        end_first = next(stamp(e) for e in log if e.get("event") == "scan finished")
+        start_second = [stamp(e) for e in log if e.get("event") == "scan started"][1]
+        assert 0 <= start_second - end_first < 0.3
+        cached = sorted(p.name for p in (disk / "scans").iterdir() if p.is_dir())
+        assert cached == [first]  # the baseline could not be evicted; the second went uncached
+        assert any(e.get("event") == "disk still full, scan published uncached"
+                   for e in agent.log())  # fmt: skip
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
+                                    and json.loads(m.payload)["scan_id"] == second for m in ms))
+        col.wait_for(lambda ms: any(m.topic == f"{BASE}/alarm" for m in ms))
+        (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
+        assert (alarm["type"], alarm["state"], alarm["scan_id"]) == ("cache", "raised", second)
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+
+
+@pytest.mark.parametrize(("section", "values", "expected"), [
+    ("alarms", {"collapse_depth_m": -1.0},
+     "alarms.collapse_depth_m: Input should be greater than 0"),
+    ("schedule", {"cron": "0 25 * * *"}, "schedule.cron: not a crontab expression"),
+    ("metrics", {"port": 0}, "metrics.port: Input should be greater than or equal to 1"),
+    ("simulation", {"sequence": "flat"}, "simulation.sequence: Input should be a valid list"),
+])
+def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path, section, values, expected):
+    config = write_config(tmp_path / "agent.toml", 1, tmp_path, **{section: values})
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "run", "--config", str(config)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 78
+    assert f"{config}: {expected}" in run.stderr
+    assert not (tmp_path / "scans").exists()  # nothing started
+
+
+def test_bad_time_zone_exits_78(tmp_path: Path):
+    config = write_config(tmp_path / "agent.toml", 1, tmp_path)
+    config.write_text(config.read_text().replace('[silo]\n', '[silo]\ntimezone = "Mars/Olympus"\n'))
+    run = subprocess.run([sys.executable, "-m", "silo_agent", "check-config", str(config)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 78
+    assert "silo.timezone: unknown time zone 'Mars/Olympus'" in run.stderr
+
+
+def test_cron_runs_in_the_site_time_zone_with_grace_and_coalescing(tmp_path: Path):
+    from silo_agent.agent import Agent
+    from silo_agent.config import load_config
+
+    config_path = write_config(tmp_path / "agent.toml", 1, tmp_path,
+                               schedule={"cron": "0 6 * * *", "interval_s": 3600,
+                                         "misfire_grace_s": 120})
+    config_path.write_text(config_path.read_text().replace(
+        "[silo]\n", '[silo]\ntimezone = "Australia/Adelaide"\n'))
+    agent = Agent(config_path, load_config(config_path))
+    agent._start_scheduler()
+    try:
+        jobs = {job.id: job for job in agent._scheduler.get_jobs()}
+        cron = jobs["cron"]
+        assert str(cron.next_run_time.tzinfo) == "Australia/Adelaide"
+        assert (cron.next_run_time.hour, cron.next_run_time.minute) == (6, 0)
+        assert jobs["interval"].trigger.interval.total_seconds() == 3600
+        for job in jobs.values():
+            assert job.misfire_grace_time == 120 and job.coalesce and job.max_instances == 1
+    finally:
+        agent._stop_scheduler()
+        agent.telemetry.outbox.close()
+
+
+def test_every_daemon_key_is_documented_in_the_example():
+    from silo_agent.config import AlarmsConfig, AuditConfig, MetricsConfig, ScheduleConfig
+
+    example = (Path(__file__).parents[1] / "config" / "silo-agent.example.toml").read_text()
+    for section, model in (("schedule", ScheduleConfig), ("audit", AuditConfig),
+                           ("alarms", AlarmsConfig), ("metrics", MetricsConfig)):
+        block = example.split(f"[{section}]", 1)[1].split("\n[", 1)[0]
+        for key in model.model_fields:
+            assert f"\n{key} = " in block or f"\n# {key} = " in block, f"{section}.{key}"
+
+
+def test_notifier_speaks_to_abstract_sockets_and_honours_watchdog_pid(monkeypatch):
+    import os
+    import socket
+
+    from silo_agent.sdnotify import Notifier
+
+    name = f"silo-agent-test-{os.getpid()}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind("\0" + name)  # what systemd uses when $NOTIFY_SOCKET starts with "@"
+        server.settimeout(2)
+        monkeypatch.setenv("NOTIFY_SOCKET", "@" + name)
+        monkeypatch.setenv("WATCHDOG_USEC", "30000000")
+        monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+        notifier = Notifier.from_env()
+        assert notifier.watchdog_s == 30.0
+        assert notifier.ready("up")
+        assert server.recv(100) == b"READY=1\nSTATUS=up"
+        notifier.close()
+        monkeypatch.setenv("WATCHDOG_PID", str(os.getpid() + 1))  # meant for another process
+        assert Notifier.from_env().watchdog_s is None
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    quiet = Notifier.from_env()
+    assert not quiet.enabled and quiet.status("nobody listens") is False
