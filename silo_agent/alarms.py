@@ -329,13 +329,18 @@ def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
     was = "calibration" in active
     drifted = sorted(state.raised)
     if drifted and not was:
-        message = "; ".join(c.message for c in changes if c.kind == "raised")
-        event = _event("calibration", "raised", Finding(True, "warning", message,
-                                                        {"drift": drifted}), inputs.scan_id)
+        raised = [c for c in changes if c.kind == "raised"]
+        message = "; ".join(c.message for c in raised) + f" [drifted: {', '.join(drifted)}]"
+        details = {}
+        if raised:  # AlarmPayload's value / threshold: the worst of them
+            worst = max(raised, key=lambda c: c.value / c.threshold)
+            details = {"value": worst.value, "threshold": worst.threshold}
+        event = _event("calibration", "raised", Finding(True, "warning", message, details),
+                       inputs.scan_id)
         active["calibration"] = event
         events.append(event)
     elif was and not drifted:
         del active["calibration"]
-        finding = Finding(False, "warning", "camera poses agree again", {"drift": []})
+        finding = Finding(False, "warning", "camera poses agree again")
         events.append(_event("calibration", "cleared", finding, inputs.scan_id))
     return state.to_json()

@@ -94,3 +94,24 @@ def test_simulated_imu_sees_a_knocked_camera() -> None:
     nominal = view_pose(rig().scene, "A3")
     scan = render(["A3"], 0, {"A3": knocked(nominal, 1.0, (1.0, 0.0, 0.0))})
     assert gravity_angles(scan.cameras)["sim-A3"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_the_calibration_alarm_follows_the_drift_detector() -> None:
+    from silo_agent.alarms import AlarmState, Inputs, evaluate
+    from silo_agent.config import AlarmsConfig
+    from silo_agent.telemetry.payloads import Envelope, alarm_payload
+
+    state, seen, published = AlarmState(), [], []
+    for k, residual in enumerate([0.02, 0.02, 0.02, 0.02, 0.001, 0.001, 0.001]):
+        inputs = Inputs(scan_id=f"s{k}", heightmap=None, volume_m3=None, coverage=1.0,
+                        valid=True, registration_residual_m={"a|b": residual},
+                        gravity_deg={"a": 0.1}, gravity_tolerance_deg={"a": 3.0})
+        events, state = evaluate(state, inputs, AlarmsConfig(), detectors={},
+                                 calibration=SETTINGS)
+        seen += [(k, e["type"], e["state"]) for e in events]
+        published += [alarm_payload(Envelope.new(k + 1), e) for e in events]  # as MQTT does
+        state = AlarmState.from_json(state.to_json())  # as the agent persists it
+    assert seen == [(2, "calibration", "raised"), (6, "calibration", "cleared")]
+    assert published[0].value == pytest.approx(0.02) and "a|b" in published[0].message
+    events, _ = evaluate(AlarmState(), inputs, AlarmsConfig(), detectors={})
+    assert events == []  # without calibration settings the detector does not run

@@ -4,7 +4,10 @@ Misplaced cameras show up as two surfaces in one cell (paper fig. 4). For every 
 and every cell both observe with enough points, the difference of their mean heights is taken,
 corrected to first order for the local slope (the two cameras' points do not sit at the same
 place in the cell, and on a slope that alone is a height difference). The pair's residual is
-the median of those differences (robust to edges and shadows) with their MAD.
+the median of those differences (robust to edges and shadows) with their MAD. Cells where a
+camera's points spread over more than MAX_SPREAD_M in height, or where the surface is steeper
+than MAX_SLOPE, are walls and edges, not a surface two cameras can agree on, and are left out
+(opposite wall cameras otherwise shared only wall cells and read 0.6 m of "disagreement").
 
 Pure numpy, one bincount per quantity, no loop over cells: it runs on every scan.
 """
@@ -18,7 +21,8 @@ import numpy as np
 
 from silo_agent.reconstruct.grid import FusedCloud, Grid
 
-MAD_TO_SIGMA = 1.4826
+MAX_SPREAD_M = 0.05  # a camera's points in a cell spread more in height: a wall, not a surface
+MAX_SLOPE = 1.0  # 45 deg; grain stands at 23-40 deg, walls and pile edges seen edge-on do not
 
 
 @dataclass(frozen=True)
@@ -67,7 +71,12 @@ def registration_residuals(
             (np.bincount(key, pts[:, axis], size).reshape(n_cells, n_cams) / count)
             for axis in range(3)
         ]
-    seen = count >= min_points
+    z = pts[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = np.sqrt(np.maximum(
+            np.bincount(key, z * z, size).reshape(n_cells, n_cams) / count - mean[2] ** 2, 0.0))
+    # a camera's cell is a surface seen from above, not a wall or post standing in it
+    seen = (count >= min_points) & (spread <= MAX_SPREAD_M)
     shared = seen.sum(axis=1) >= 2
     if not np.any(shared):
         return {}
@@ -77,6 +86,7 @@ def registration_residuals(
     grad_y, grad_x = np.gradient(surface.reshape(rows, cols), grid.step)
     grad_x, grad_y = grad_x.ravel(), grad_y.ravel()
     usable = shared & np.isfinite(grad_x) & np.isfinite(grad_y)
+    usable &= np.hypot(grad_x, grad_y) <= MAX_SLOPE  # steeper than grain stands: walls, edges
     cells = np.flatnonzero(usable)
     mx, my, mz = (m[cells] for m in mean)
     gx, gy, ok = grad_x[cells], grad_y[cells], seen[cells]
