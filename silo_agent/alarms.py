@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from silo_agent.config import AlarmsConfig
+from silo_agent.config import AlarmsConfig, CalibrationConfig
 from silo_agent.heightmap import HeightMap
 
 SIGMA_PER_MAD = 1.4826  # standard deviation of a normal distribution per median absolute dev.
@@ -47,6 +47,9 @@ class Inputs:
     baseline: HeightMap | None = None  # collapse baseline's map, if there is one
     baseline_scan_id: str | None = None
     previous_volume_m3: float | None = None  # default: the state's last valid volume
+    registration_residual_m: Mapping[str, float] = field(default_factory=dict)  # pair -> median
+    gravity_deg: Mapping[str, float] = field(default_factory=dict)  # camera -> IMU vs extrinsic
+    gravity_tolerance_deg: Mapping[str, float] = field(default_factory=dict)  # camera -> limit
 
 
 @dataclass(frozen=True)
@@ -69,11 +72,12 @@ class AlarmState:
     active: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # type -> raised event
     baseline_scan_id: str | None = None
     last_volume_m3: float | None = None
+    drift: Mapping[str, Any] = field(default_factory=dict)  # calibrate.DriftState.to_json()
 
     def to_json(self) -> dict[str, Any]:
         return {"active": {k: dict(v) for k, v in self.active.items()},
                 "baseline_scan_id": self.baseline_scan_id,
-                "last_volume_m3": self.last_volume_m3}  # fmt: skip
+                "last_volume_m3": self.last_volume_m3, "drift": dict(self.drift)}  # fmt: skip
 
     @staticmethod
     def from_json(data: Mapping[str, Any]) -> AlarmState:
@@ -81,6 +85,7 @@ class AlarmState:
             active={str(k): dict(v) for k, v in (data.get("active") or {}).items()},
             baseline_scan_id=data.get("baseline_scan_id"),
             last_volume_m3=data.get("last_volume_m3"),
+            drift=dict(data.get("drift") or {}),
         )
 
 
@@ -271,8 +276,14 @@ def evaluate(
     inputs: Inputs,
     cfg: AlarmsConfig,
     detectors: Mapping[str, Detector] | None = None,
+    calibration: CalibrationConfig | None = None,
 ) -> tuple[list[dict[str, Any]], AlarmState]:
-    """Events (`raised` / `cleared`, only on a change) and the state for the next scan."""
+    """Events (`raised` / `cleared`, only on a change) and the state for the next scan.
+
+    With `calibration`, the `calibration` alarm follows the calibration_drift detector
+    (silo_agent.calibrate.drift_step, whose run lengths the state carries): raised while any
+    camera pair's height disagreement or camera's IMU tilt is drifted, cleared when none is.
+    """
     detectors = DETECTORS if detectors is None else detectors
     if inputs.previous_volume_m3 is None:
         inputs = replace(inputs, previous_volume_m3=state.last_volume_m3)
@@ -291,6 +302,9 @@ def evaluate(
             elif was and not finding.active:
                 del active[kind]
                 events.append(_event(kind, "cleared", finding, inputs.scan_id))
+    drift = state.drift
+    if cfg.enabled and calibration is not None and inputs.reconstructed:
+        drift = _calibration_drift(inputs, calibration, state.drift, active, events)
     baseline = state.baseline_scan_id
     if cfg.baseline_scan_id is not None:
         baseline = cfg.baseline_scan_id
@@ -299,4 +313,34 @@ def evaluate(
     volume = state.last_volume_m3
     if inputs.valid and inputs.volume_m3 is not None:
         volume = inputs.volume_m3
-    return events, replace(state, active=active, baseline_scan_id=baseline, last_volume_m3=volume)
+    return events, replace(state, active=active, baseline_scan_id=baseline, last_volume_m3=volume,
+                           drift=drift)
+
+
+def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
+                       previous: Mapping[str, Any], active: dict[str, Mapping[str, Any]],
+                       events: list[dict[str, Any]]) -> dict[str, Any]:  # fmt: skip
+    """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
+    from silo_agent.calibrate import DriftState, drift_step
+
+    tolerances = inputs.gravity_tolerance_deg or 3.0
+    state, changes = drift_step(DriftState.from_json(previous), inputs.registration_residual_m,
+                                inputs.gravity_deg, calibration, tolerances)
+    was = "calibration" in active
+    drifted = sorted(state.raised)
+    if drifted and not was:
+        raised = [c for c in changes if c.kind == "raised"]
+        message = "; ".join(c.message for c in raised) + f" [drifted: {', '.join(drifted)}]"
+        details = {}
+        if raised:  # AlarmPayload's value / threshold: the worst of them
+            worst = max(raised, key=lambda c: c.value / c.threshold)
+            details = {"value": worst.value, "threshold": worst.threshold}
+        event = _event("calibration", "raised", Finding(True, "warning", message, details),
+                       inputs.scan_id)
+        active["calibration"] = event
+        events.append(event)
+    elif was and not drifted:
+        del active["calibration"]
+        finding = Finding(False, "warning", "camera poses agree again")
+        events.append(_event("calibration", "cleared", finding, inputs.scan_id))
+    return state.to_json()

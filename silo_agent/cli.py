@@ -88,7 +88,8 @@ def cmd_process(args: argparse.Namespace) -> int:
         site = site_from_config(config)
     detection = config.detection if config is not None else DetectionConfig()
     try:
-        result = analyse(scan, settings, detection, site=site)
+        calibration = config.calibration if config is not None else None
+        result = analyse(scan, settings, detection, site=site, calibration=calibration)
     except ModelError as exc:
         return _fail(str(exc), EX_CONFIG)
     if args.json:
@@ -181,7 +182,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
         return _fail(f"cannot write the scan: {exc}", 1)
     previous = _previous_piles(directory.parent, scan.scan_id)
     try:
-        result = analyse(scan, config.reconstruction, config.detection, previous=previous)
+        result = analyse(scan, config.reconstruction, config.detection, previous=previous,
+                         calibration=config.calibration)
     except ModelError as exc:
         return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
     summary = result.summary()
@@ -226,6 +228,70 @@ def cmd_record(args: argparse.Namespace) -> int:
             continue
         print(f"{camera.serial}: {frames} frames -> {path}")
     return 1 if failed else 0
+
+
+# ---------------------------------------------------------------- calibrate
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from silo_agent.calibrate import (
+        CalibrationError,
+        SerialMismatch,
+        calibrate,
+        start_poses,
+        write_calibrated_config,
+    )
+    from silo_agent.reconstruct import site_from_config
+    from silo_agent.scan import ScanError, read_scan, write_scan
+
+    config = load_config(args.config)
+    if args.scan is not None:
+        try:
+            scan = read_scan(args.scan)
+        except ScanError as exc:
+            return _fail(str(exc), EX_DATAERR)
+    else:
+        from silo_agent.capture import capture_all
+
+        started = datetime.now(UTC)
+        capture = capture_all(config)
+        for failure in capture.failures:
+            print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
+        if capture.failures or not capture.clouds:
+            return _fail("calibration needs every camera; "
+                         f"{len(capture.failures)} failed, no calibration done", 1)
+        scan = _new_scan(config, capture.clouds, capture.failures, started)
+        try:  # keep the calibration scan for audit, like any scan
+            directory = write_scan(scan, config.audit.directory / f"{scan.scan_id}-calibration")
+            print(f"calibration scan written to {directory}", file=sys.stderr)
+        except (ScanError, OSError) as exc:
+            print(f"silo-agent: warning: calibration scan not kept: {exc}", file=sys.stderr)
+    try:
+        start = start_poses(config, scan)
+        result = calibrate(scan, config.calibration, floor=args.floor,
+                           site=site_from_config(config), start=start,
+                           grid_step=config.reconstruction.grid_step_m)
+    except CalibrationError as exc:
+        return _fail(f"{args.scan or 'capture'}: {exc}",
+                     EX_DATAERR if isinstance(exc, SerialMismatch) else 1)
+    backup = None
+    if args.write:
+        try:
+            backup = write_calibrated_config(args.config, result.extrinsics())
+        except CalibrationError as exc:
+            return _fail(str(exc), 1)
+    if args.json:
+        out = result.to_json()
+        out["config_written"] = bool(args.write)
+        out["backup"] = None if backup is None else str(backup)
+        print(json.dumps(out, allow_nan=False))
+    else:
+        print(result.describe())
+        if backup is not None:
+            print(f"{args.config}: extrinsics updated (previous file kept as {backup})")
+        else:
+            print("config not changed (use --write to update it)")
+    return 0
 
 
 # ---------------------------------------------------------------- simulate
@@ -463,6 +529,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
     p.add_argument("--seconds", type=_seconds, default=5.0, metavar="S", help="default 5")
     p.set_defaults(handler=cmd_record)
+
+    p = sub.add_parser("calibrate", help="level and register the cameras from one scan")
+    p.add_argument("--config", type=Path, required=True, metavar="FILE")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--scan", type=Path, metavar="DIR", help="a silo-scan/1 calibration scan")
+    source.add_argument("--capture", action="store_true", help="capture one with every camera")
+    p.add_argument("--floor", action="store_true",
+                   help="the floor z = floor_z is visible around the grain: level on it")
+    p.add_argument("--write", action="store_true",
+                   help="update the config's extrinsics in place (comments kept, backup made)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.set_defaults(handler=cmd_calibrate)
 
     p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
     p.add_argument("--scene", required=True,

@@ -382,6 +382,53 @@ class AuditConfig(Strict):
     max_age_days: float = Field(default=90, gt=0)
 
 
+class CalibrationConfig(Strict):
+    """Calibration (`silo-agent calibrate`), the per-scan registration check and drift alarm."""
+
+    residual_min_points: int = Field(
+        default=5, ge=1, description="points each camera needs in a cell for it to be compared"
+    )
+    residual_min_cells: int = Field(
+        default=50, ge=1, description="cells two cameras must share for their residual to count"
+    )
+    drift_threshold_m: float = Field(
+        default=0.005, gt=0, description="|median height disagreement| of a pair that is drift"
+    )
+    drift_consecutive: int = Field(
+        default=3, ge=1, description="scans in a row over a threshold before the alarm is raised"
+    )
+    max_correction_deg: float = Field(
+        default=3.0, gt=0, description="calibrate refuses to turn a camera by more than this"
+    )
+    max_correction_m: float = Field(
+        default=0.10, gt=0, description="calibrate refuses to move a camera by more than this"
+    )
+    prior_deg: float = Field(
+        default=1.0, gt=0, description="expected placement error (rotation) of a configured camera"
+    )
+    prior_m: float = Field(
+        default=0.02, gt=0, description="expected placement error (position) of a configured camera"
+    )
+    icp_voxel_m: float = Field(default=0.02, gt=0, description="ICP down-sampling voxel")
+    icp_max_distance_m: float = Field(
+        default=0.08, gt=0, description="ICP's first (coarsest) correspondence distance"
+    )
+    min_overlap: float = Field(
+        default=0.2, gt=0, le=1, description="ICP fitness below which two views do not overlap"
+    )
+    floor_band_m: float = Field(
+        default=0.15, gt=0, description="points this close to floor_z are floor candidates"
+    )
+    floor_max_range_m: float = Field(
+        default=6.0, gt=0, description="floor points farther from their camera are too noisy"
+    )
+    refine: bool = Field(
+        default=False, description="every scan: bounded ICP on the overlaps before reconstructing"
+    )
+    refine_max_deg: float = Field(default=0.5, gt=0, description="per-scan refinement bound")
+    refine_max_m: float = Field(default=0.02, gt=0, description="per-scan refinement bound")
+
+
 class Config(Strict):
     silo: SiloConfig
     reconstruction: ReconstructionConfig = ReconstructionConfig()
@@ -393,6 +440,7 @@ class Config(Strict):
     audit: AuditConfig = AuditConfig()
     alarms: AlarmsConfig = AlarmsConfig()
     metrics: MetricsConfig = MetricsConfig()
+    calibration: CalibrationConfig = CalibrationConfig()
 
     @model_validator(mode="after")
     def _unique_serials(self) -> Config:

@@ -56,6 +56,16 @@ def transform_from_euler(rotate_deg: Sequence[float], translate_m: Sequence[floa
     return matrix
 
 
+def gravity_angle_deg(gravity: np.ndarray | Sequence[float], extrinsic: np.ndarray) -> float:
+    """Angle (degrees) between a measured gravity vector (pointing down, camera axes) and the
+    silo's -z seen from the camera through `extrinsic`: how far the IMU says the camera's tilt
+    is from the one its extrinsic claims."""
+    gravity = np.asarray(gravity, dtype=float)
+    down_in_camera = extrinsic[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+    cosine = float(np.dot(gravity / np.linalg.norm(gravity), down_in_camera))
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
 def _segments_cross(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
     """Proper intersection test of segment pairs (broadcast), touching ends excluded."""
 

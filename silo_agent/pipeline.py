@@ -21,6 +21,7 @@ import structlog
 from silo_agent import __version__
 from silo_agent.alarms import DETECTORS, AlarmState, Inputs, evaluate
 from silo_agent.audit import RESULT, AuditCache, dump_json, is_disk_full, write_atomic
+from silo_agent.calibrate import gravity_angles
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
 from silo_agent.metrics import Metrics
@@ -198,7 +199,8 @@ class Pipeline:
         try:
             from silo_agent.detect import analyse
 
-            result = analyse(scan, config.reconstruction, config.detection, previous=previous)
+            result = analyse(scan, config.reconstruction, config.detection, previous=previous,
+                             calibration=config.calibration)
         except Exception as exc:  # a bug or a bad model must not stop the agent
             log.exception("processing failed", scan_id=scan_id)
             return self._failed(scan_id, captured_at, f"processing: {exc}", capture.failures,
@@ -213,8 +215,12 @@ class Pipeline:
             ceiling_z=config.silo.ceiling_z, max_z=surface.get("max_z"),
             failed_cameras=failed, cache_full=cache_full, baseline=self._baseline(),
             baseline_scan_id=self.config.alarms.baseline_scan_id or self.state.baseline_scan_id,
+            registration_residual_m={k: r.median_m for k, r in result.registration.items()},
+            gravity_deg=gravity_angles(scan.cameras),
+            gravity_tolerance_deg={c.serial: c.gravity_tolerance_deg for c in config.cameras},
         )
-        events, state = evaluate(self.state, inputs, config.alarms)
+        events, state = evaluate(self.state, inputs, config.alarms,
+                                 calibration=config.calibration)
         t = lap("alarms", t)
         check()
 

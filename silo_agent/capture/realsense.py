@@ -24,6 +24,7 @@ import structlog
 
 from silo_agent.capture import CaptureError
 from silo_agent.config import CameraConfig, Config
+from silo_agent.geometry import gravity_angle_deg
 from silo_agent.scan import CameraCloud
 
 log = structlog.get_logger(__name__)
@@ -178,13 +179,6 @@ def median_of_valid(stack: np.ndarray, min_valid_fraction: float) -> np.ndarray:
     median = 0.5 * (np.take_along_axis(values, lo, 0)[0] + np.take_along_axis(values, hi, 0)[0])
     needed = max(1, math.ceil(min_valid_fraction * stack.shape[0]))
     return np.where(count >= needed, median, 0.0)
-
-
-def gravity_angle_deg(gravity: np.ndarray, extrinsic: np.ndarray) -> float:
-    """Angle between the measured gravity and the silo's -z seen from the camera (extrinsic)."""
-    down_in_camera = extrinsic[:3, :3].T @ np.array([0.0, 0.0, -1.0])
-    cosine = float(np.dot(gravity / np.linalg.norm(gravity), down_in_camera))
-    return math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
 
 
 # ---------------------------------------------------------------- camera

@@ -2,12 +2,15 @@
 so the daemon runs end to end on a laptop (config/demo.toml).
 
 The cloud carries the configured (nominal) extrinsic; `[simulation] calib_error_*` moves the
-pose the scene is really rendered from, as a badly calibrated camera would.
+pose the scene is really rendered from, as a badly calibrated camera would. A camera with both
+a `view` and an extrinsic really hangs at its view (plus the error) whatever the extrinsic
+says, so a calibrated config (`silo-agent calibrate --write`) converges on it.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from functools import lru_cache
 
 from silo_agent.capture import CaptureError
@@ -48,10 +51,19 @@ class SimCamera:
         self._seed = sim.seed + (scan_number if sim.vary_noise else 0)
         self._color = camera.color
         self._capture_s = sim.capture_s
-        self._view = plan_view(  # the pose error stays: it is the camera's, not the scan's
-            camera.view or camera.serial, camera.serial, nominal, sim.seed,
-            (sim.calib_error_deg, sim.calib_error_m), camera.width, camera.height,
-        )
+        # the pose error stays: it is the camera's, not the scan's
+        error = (sim.calib_error_deg, sim.calib_error_m)
+        key = camera.view or camera.serial
+        self._view = plan_view(key, camera.serial, nominal, sim.seed, error, camera.width,
+                               camera.height)
+        if camera.view is not None and camera.extrinsic_matrix() is not None:
+            # the camera hangs at its view (off by calib_error); the configured extrinsic is
+            # only what the config believes, e.g. after `silo-agent calibrate --write`
+            placed = _rig(sim.sequence[0], sim.grain) if sim.sequence else rig
+            mounted = plan_view(key, camera.serial,
+                                view_pose(placed.scene, camera.view, sim.layout),
+                                sim.seed, error, camera.width, camera.height)
+            self._view = replace(self._view, true=mounted.true)
 
     def capture(self) -> CameraCloud:
         if self._capture_s:  # as long as a real camera's warm-up and frames

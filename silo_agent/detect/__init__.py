@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from silo_agent.config import DetectionConfig, ReconstructionConfig
+from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect.geometric import EDGE_M, Surface, detect_piles, grid_of
 from silo_agent.detect.piles import ModelError, Pile, match_ids
 from silo_agent.scan import CameraCloud, Scan, Site
@@ -112,8 +112,13 @@ def analyse(
     detection: DetectionConfig,
     site: Site | None = None,
     previous: Sequence[Pile] = (),
+    calibration: CalibrationConfig | None = None,
 ) -> Result:
-    """Reconstruct `scan` and detect its piles (and robot) as `detection` configures."""
+    """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
+
+    `calibration` sets how the registration residual is measured; with `refine` on, a bounded
+    registration of the overlaps adjusts the scan's extrinsics first (silo_agent.calibrate).
+    """
     from silo_agent.reconstruct import reconstruct
     from silo_agent.reconstruct.volume import base_surface
 
@@ -126,7 +131,16 @@ def analyse(
 
         found = locate(YoloModel(onnx.model), scan.cameras, onnx.confidence, onnx.iou)
         robots = robots_of(found, onnx.robot_classes)
-    result = reconstruct(scan, settings, site, exclude=[r.disc for r in robots])
+    notes: list[str] = []
+    if calibration is not None and calibration.refine:
+        from silo_agent.calibrate import refine
+
+        scan, notes = refine(scan, calibration, site)
+    result = reconstruct(scan, settings, site, exclude=[r.disc for r in robots],
+                         calibration=calibration)
+    if calibration is not None and calibration.refine:
+        result.parameters["refined"] = not notes
+        result.parameters["refine_notes"] = notes
     result.robots = robots if onnx is not None else None
     if result.heightmap is None:
         result.piles = []

@@ -14,11 +14,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import ndimage
 
-from silo_agent.config import Config, ReconstructionConfig
+from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
 from silo_agent.reconstruct.grid import FusedCloud, Grid, fuse_and_crop
+from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.reconstruct.smooth import masked_smooth
 from silo_agent.reconstruct.volume import (
     Levels,
@@ -61,6 +62,7 @@ class Result:
     timings_s: dict[str, float] = field(default_factory=dict)
     piles: list[Pile] | None = None  # silo_agent.detect; None: detection did not run
     robots: list[Robot] | None = None  # None: no YOLO model configured
+    registration: dict[str, PairResidual] = field(default_factory=dict)  # reconstruct/residual
 
     def summary(self) -> dict[str, Any]:
         """The JSON object of `silo-agent process --json` (scan-format.md) and MQTT."""
@@ -87,6 +89,8 @@ class Result:
             "timings_s": self.timings_s,
             "piles": None if self.piles is None else [p.to_json() for p in self.piles],
             "robots": None if self.robots is None else [r.to_json() for r in self.robots],
+            "registration_residual_m": {k: r.median_m for k, r in self.registration.items()},
+            "registration_residual": {k: r.to_json() for k, r in self.registration.items()},
         }
 
     def describe(self) -> str:
@@ -200,11 +204,13 @@ def reconstruct(
     settings: ReconstructionConfig,
     site: Site | None = None,
     exclude: Sequence[tuple[float, float, float]] = (),
+    calibration: CalibrationConfig | None = None,
 ) -> Result:
     """Run the configured method on `scan`; `site` overrides the scan's own site.
 
     `exclude` lists silo-frame discs (x, y, radius) whose points are not grain (a leveling
     robot found by the detector): they are dropped after fusing and the fill covers the hole.
+    `calibration` sets how the cameras' height disagreement is measured (reconstruct/residual).
     """
     site = site or scan.site
     clock = _Clock()
@@ -213,12 +219,20 @@ def reconstruct(
     if exclude:
         fused = _excluding(fused, exclude)
     clock.lap("fuse_crop")
+    calibration = calibration or CalibrationConfig()
+    registration = registration_residuals(
+        fused, grid, [c.serial for c in scan.cameras], calibration.residual_min_points,
+        calibration.residual_min_cells,
+    )  # fmt: skip
+    clock.lap("registration_residual")
     if settings.method != "bicm":
         from silo_agent.reconstruct.baselines import baseline_heights
 
         heights, observed, volume = baseline_heights(settings, fused, grid, site)
         clock.lap(settings.method)
-        return _result(scan, site, settings, grid, fused, heights, observed, volume, {}, clock)
+        result = _result(scan, site, settings, grid, fused, heights, observed, volume, {}, clock)
+        result.registration = registration
+        return result
 
     points, camera, cell = fused.points, fused.camera, fused.cell
     if settings.voxel_size_m is not None:
@@ -242,7 +256,11 @@ def reconstruct(
         "fill": settings.fill,
     }
     if not np.any(observed):
-        return _result(scan, site, settings, grid, fused, None, observed, None, parameters, clock)
+        result = _result(
+            scan, site, settings, grid, fused, None, observed, None, parameters, clock
+        )
+        result.registration = registration
+        return result
     if settings.fill == "bspline":
         filled = bspline_fill(cells.height, observed)
     else:
@@ -260,6 +278,7 @@ def reconstruct(
         scan, site, settings, grid, fused, heights, observed, volume, parameters, clock
     )
     result.points["after_downsampling"] = len(points)
+    result.registration = registration
     return result
 
 

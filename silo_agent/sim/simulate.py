@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 
+from silo_agent.geometry import gravity_angle_deg
 from silo_agent.scan import CameraCloud, Scan
 from silo_agent.sim.camera import Frame, Intrinsics, NoiseModel, d455_intrinsics, expose, trace
 from silo_agent.sim.layouts import perturb, view_pose
@@ -35,6 +36,18 @@ def serial_for(view: str) -> str:
 def focal_for(seed: int, key: str) -> float:
     """This simulated unit's focal length (px at 848 wide)."""
     return float(rng_for(seed, key, _FOCAL).uniform(*FOCAL_RANGE_PX))
+
+
+GRAVITY_M_S2 = 9.80665
+
+
+def gravity_reading(view: SimView) -> dict[str, object]:
+    """The IMU keys a live D455 adds to its cloud (capture/realsense.py): gravity, pointing
+    down, in depth-camera axes of the camera's true pose (an ideal accelerometer), and its angle
+    to the vertical the nominal extrinsic implies."""
+    gravity = GRAVITY_M_S2 * view.true[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+    return {"gravity": [float(g) for g in gravity], "gravity_samples": 1,
+            "gravity_angle_deg": gravity_angle_deg(gravity, view.nominal)}
 
 
 @dataclass(frozen=True)
@@ -75,7 +88,8 @@ class SimRig:
         return CameraCloud(
             serial=view.serial, points=points, extrinsic=view.nominal,
             intrinsics=view.intrinsics.to_json(), colors=colors,
-            extra={"sim_view": view.key, "sim_true_extrinsic": view.true.tolist()},
+            extra={"sim_view": view.key, "sim_true_extrinsic": view.true.tolist(),
+                   **gravity_reading(view)},
         )
 
 
