@@ -61,9 +61,23 @@ class CameraCloud:
     extra: dict[str, Any] = field(default_factory=dict)  # firmware, gravity, frames, ...
 
     def points_in_silo(self) -> np.ndarray:
+        """(N, 3) float32 points in the silo frame.
+
+        Written column by column: a (N, 3) @ (3, 3) product goes through BLAS with an inner
+        dimension of 3 and is about 4x slower than nine fused multiply-adds over the columns.
+        """
         rotation = self.extrinsic[:3, :3].astype(np.float32)
         translation = self.extrinsic[:3, 3].astype(np.float32)
-        return self.points @ rotation.T + translation
+        x, y, z = self.points[:, 0], self.points[:, 1], self.points[:, 2]
+        out = np.empty((len(self.points), 3), dtype=np.float32)
+        for axis in range(3):
+            r = rotation[axis]
+            column = out[:, axis]
+            np.multiply(x, r[0], out=column)
+            column += y * r[1]
+            column += z * r[2]
+            column += translation[axis]
+        return out
 
 
 @dataclass

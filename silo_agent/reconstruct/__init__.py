@@ -18,7 +18,7 @@ from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
-from silo_agent.reconstruct.grid import FusedCloud, Grid, fuse_and_crop
+from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.reconstruct.smooth import masked_smooth
 from silo_agent.reconstruct.volume import (
@@ -220,9 +220,11 @@ def reconstruct(
         fused = _excluding(fused, exclude)
     clock.lap("fuse_crop")
     calibration = calibration or CalibrationConfig()
+    n_cells, n_cams = grid.shape[0] * grid.shape[1], len(scan.cameras)
+    moments = CellMoments.of(fused.points, fused.camera, fused.cell, n_cells, n_cams)
     registration = registration_residuals(
         fused, grid, [c.serial for c in scan.cameras], calibration.residual_min_points,
-        calibration.residual_min_cells,
+        calibration.residual_min_cells, moments,
     )  # fmt: skip
     clock.lap("registration_residual")
     if settings.method != "bicm":
@@ -239,9 +241,10 @@ def reconstruct(
         points, camera = voxel_downsample(points, camera, settings.voxel_size_m)
         row, col = grid.cell_index(points[:, 0], points[:, 1])
         cell = row * grid.shape[1] + col
+        moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
         clock.lap("voxel_downsample")
     cells = clustered_means(
-        points, camera, cell, grid, settings.cluster_eps_m, settings.cluster_min_points,
+        points, camera, cell, grid, moments, settings.cluster_eps_m, settings.cluster_min_points,
         settings.max_clusters,
     )  # fmt: skip
     clock.lap("clustered_means")

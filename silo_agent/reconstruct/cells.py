@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.reconstruct.grid import Grid
+from silo_agent.reconstruct.grid import CellMoments, Grid
 
 Z_QUANTUM_M = 1e-4  # height resolution inside the sort key
 Z_MIN_BITS = 20  # room for the height bits whatever the span (2^20 x 0.1 mm = 105 m)
@@ -72,10 +72,12 @@ def clustered_means(
     camera: np.ndarray,
     cell: np.ndarray,
     grid: Grid,
+    moments: CellMoments,
     eps_m: float | None,
     min_points: int | None,
     max_clusters: int,
 ) -> CellHeights:
+    """`moments` are those of (points, camera, cell): centroids and noise come from them."""
     rows, cols = grid.shape
     n_cells = rows * cols
     if len(points) == 0:
@@ -83,42 +85,51 @@ def clustered_means(
         zeros = np.zeros(grid.shape, dtype=int)
         return CellHeights(nan, nan, nan, zeros, zeros, eps_m or 0.0, min_points, 0.0)
 
+    # ---- eps: the density radius; a gap larger than this in a cell splits clusters
+    per_cell = moments.count.sum(axis=0)
+    if eps_m is None:
+        crowded = per_cell >= 3
+        count = per_cell[crowded]
+        total = moments.sum_z.sum(axis=0)[crowded]
+        squares = moments.sum_zz.sum(axis=0)[crowded]
+        variance = np.maximum(squares - total * total / count, 0.0) / (count - 1)
+        typical = float(np.sqrt(np.median(variance))) if np.any(crowded) else 0.0
+        eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
+
+    # ---- one sort: key = (cell, height bin of eps/2, camera, height within the bin), so each
+    # (cell, bin, camera) is a run of the sorted key, a "segment"; the rest works on segments
     z = points[:, 2]
     z0 = float(z.min())
     z_q = np.round((z - z0) * (1.0 / Z_QUANTUM_M)).astype(np.int64)
-    z_bits = max(Z_MIN_BITS, int(z_q.max()).bit_length())  # histogram bins live in these bits
+    z_bits = max(Z_MIN_BITS, int(z_q.max()).bit_length())
     if max(1, n_cells.bit_length()) + z_bits + CAMERA_BITS > 63:
         raise ValueError(
             f"height span {float(z.max()) - z0:.1f} m over {n_cells} cells does not fit the "
             "sort key; crop the cloud (ceiling_z) or use a coarser grid"
         )
-    key = (cell << (z_bits + CAMERA_BITS)) | (z_q << CAMERA_BITS) | camera.astype(np.int64)
-    key.sort()
-    s_cell = key >> (z_bits + CAMERA_BITS)
-    s_cam = key & ((1 << CAMERA_BITS) - 1)
-    s_z = z0 + ((key >> CAMERA_BITS) & ((1 << z_bits) - 1)) * Z_QUANTUM_M
-
-    # ---- eps: the density radius; a gap larger than this in a cell splits clusters
-    per_cell = np.bincount(s_cell, minlength=n_cells)
-    if eps_m is None:
-        crowded = per_cell >= 3
-        relative = s_z - z0
-        count = per_cell[crowded]
-        total = np.bincount(s_cell, relative, n_cells)[crowded]
-        squares = np.bincount(s_cell, relative * relative, n_cells)[crowded]
-        variance = np.maximum(squares - total * total / count, 0.0) / (count - 1)
-        typical = float(np.sqrt(np.median(variance))) if np.any(crowded) else 0.0
-        eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
-
-    # ---- 1-D density clustering (DBSCAN on a height histogram): bins of eps/2 per cell; a
-    # bin is core when its 3-bin neighbourhood holds CORE_DENSITY x the cell's densest one
     bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
-    bin_shift = CAMERA_BITS + bin_bits
-    bin_key = key >> bin_shift  # (cell, height bin)
-    b_start = np.flatnonzero(np.diff(bin_key, prepend=-1))
-    b_n = np.diff(np.append(b_start, len(key)))
-    b_key = bin_key[b_start]
-    b_cell = s_cell[b_start]
+    fine_mask = (1 << bin_bits) - 1
+    key = cell << (z_bits + CAMERA_BITS)
+    key |= (z_q >> bin_bits) << (CAMERA_BITS + bin_bits)
+    key |= camera.astype(np.int64) << bin_bits
+    key |= z_q & fine_mask
+    key.sort()
+    segment_key = key >> bin_bits
+    s_start = np.flatnonzero(np.diff(segment_key, prepend=-1))
+    s_n = np.diff(np.append(s_start, len(key)))
+    s_fine = np.add.reduceat(key & fine_mask, s_start)  # heights within the bin, summed
+    s_key = segment_key[s_start]
+    s_cam = s_key & ((1 << CAMERA_BITS) - 1)
+    s_bin = s_key >> CAMERA_BITS  # (cell, height bin)
+    bin_mask = (1 << (z_bits - bin_bits)) - 1
+    s_z_sum = (s_n * ((s_bin & bin_mask) << bin_bits) + s_fine) * Z_QUANTUM_M  # above z0
+
+    # ---- 1-D density clustering (DBSCAN on a height histogram): a bin is core when its 3-bin
+    # neighbourhood holds CORE_DENSITY x the cell's densest one
+    b_start = np.flatnonzero(np.diff(s_bin, prepend=-1))
+    b_n = np.add.reduceat(s_n, b_start)
+    b_key = s_bin[b_start]
+    b_cell = b_key >> (z_bits - bin_bits)
     same_cell_prev = np.zeros(len(b_key), dtype=bool)
     same_cell_prev[1:] = b_cell[1:] == b_cell[:-1]
     below = same_cell_prev & (b_key - np.roll(b_key, 1) == 1)
@@ -147,21 +158,21 @@ def clustered_means(
     thin = b_key[c_bin] - bottom <= double_surface / bin_width
     bin_cluster = np.full(len(b_key), -1, dtype=np.int64)
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
-    point_cluster = np.repeat(bin_cluster, b_n)
-    member = point_cluster >= 0
-    p_cluster, p_cam, p_z = point_cluster[member], s_cam[member], s_z[member]
-    c_n = np.bincount(p_cluster, minlength=n_clusters)
+    segment_cluster = np.repeat(bin_cluster, np.diff(np.append(b_start, len(s_bin))))
+    member = np.flatnonzero(segment_cluster >= 0)
+    m_cluster, m_n = segment_cluster[member], s_n[member]
+    c_n = np.bincount(m_cluster, m_n, n_clusters)
     c_cell = b_cell[c_bin[new_cluster]]
 
     # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster
-    n_cams = int(s_cam.max()) + 1
-    pair = p_cluster * n_cams + p_cam
+    n_cams = moments.count.shape[0]
+    pair = m_cluster * n_cams + s_cam[member]
     size = n_clusters * n_cams
-    pair_n = np.bincount(pair, minlength=size)
+    pair_n = np.bincount(pair, m_n, size)
     present = np.flatnonzero(pair_n)
-    pair_mean = np.bincount(pair, p_z, size)[present] / pair_n[present]
+    pair_mean = np.bincount(pair, s_z_sum[member], size)[present] / pair_n[present]
     pair_cluster = present // n_cams
-    c_z = np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
+    c_z = z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
         pair_cluster, minlength=n_clusters
     )
 
@@ -181,17 +192,24 @@ def clustered_means(
     )
     valid &= c_z - lowest <= double_surface
 
-    # ---- keep the `max_clusters` largest valid clusters of each cell
-    order = np.lexsort((c_z, -c_n, ~valid, c_cell))
-    rank = np.empty(n_clusters, dtype=np.int64)
-    rank[order] = np.arange(n_clusters) - np.repeat(cell_start, group_size)
-    keep = valid & (rank < max_clusters)
+    # ---- keep the `max_clusters` largest valid clusters of each cell (ties: the lowest); only
+    # the few cells with more valid clusters than that need ranking
+    valid_per_cell = np.add.reduceat(valid.astype(np.int64), cell_start)
+    crowded_cluster = np.repeat(valid_per_cell > max_clusters, group_size)
+    keep = valid.copy()
+    if np.any(crowded_cluster):
+        idx = np.flatnonzero(crowded_cluster)
+        order = idx[np.lexsort((c_z[idx], -c_n[idx], ~valid[idx], c_cell[idx]))]
+        sorted_cell = c_cell[order]
+        first = np.flatnonzero(np.diff(sorted_cell, prepend=-1))
+        rank = np.arange(len(order)) - np.repeat(first, np.diff(np.append(first, len(order))))
+        keep[order] &= rank < max_clusters
 
     kept = np.bincount(c_cell, keep.astype(float), n_cells)
     with np.errstate(invalid="ignore", divide="ignore"):
         height = np.bincount(c_cell, c_z * keep, n_cells) / kept
-        centroid_x = np.bincount(cell, points[:, 0], n_cells) / per_cell
-        centroid_y = np.bincount(cell, points[:, 1], n_cells) / per_cell
+        centroid_x = moments.sum_x.sum(axis=0) / per_cell
+        centroid_y = moments.sum_y.sum(axis=0) / per_cell
     height[kept == 0] = np.nan
     return CellHeights(
         height=height.reshape(grid.shape),

@@ -55,25 +55,56 @@ class FusedCloud:
     raw_count: int
 
 
+@dataclass(frozen=True)
+class CellMoments:
+    """Per (camera, cell): point count and sums of x, y, z and z^2; arrays (cameras, cells).
+
+    Computed once per scan and shared by the registration residual (per-camera means and
+    spreads) and the clustered means (cell centroids, the noise that sets eps). Camera-major,
+    so that sums over cameras add whole rows (summing a short last axis is several times
+    slower).
+    """
+
+    count: np.ndarray
+    sum_x: np.ndarray
+    sum_y: np.ndarray
+    sum_z: np.ndarray
+    sum_zz: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int,
+           n_cams: int) -> CellMoments:  # fmt: skip
+        key = camera.astype(np.int64) * n_cells + cell
+        size = n_cells * n_cams
+        z = points[:, 2].astype(np.float64)
+
+        def total(weights: np.ndarray | None) -> np.ndarray:
+            return np.bincount(key, weights, size).reshape(n_cams, n_cells)
+
+        return cls(total(None), total(points[:, 0]), total(points[:, 1]), total(z), total(z * z))
+
+
 def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCloud:
     """Paper 2.3.1: transform every cloud by its extrinsic, crop the ceiling and the region."""
     rows, cols = grid.shape
     inside_flat = grid.inside.ravel() > 0
+    inverse_step = 1.0 / grid.step
     kept_points, kept_camera, kept_cell = [], [], []
     raw = 0
     for index, camera in enumerate(cameras):
         points = camera.points_in_silo()
         raw += len(points)
-        keep = np.ones(len(points), dtype=bool)
+        col = np.floor((points[:, 0] - grid.origin[0]) * inverse_step).astype(np.int64)
+        row = np.floor((points[:, 1] - grid.origin[1]) * inverse_step).astype(np.int64)
+        keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
         if site.ceiling_z is not None:
             keep &= points[:, 2] <= site.ceiling_z
-        row, col = grid.cell_index(points[:, 0], points[:, 1])
-        keep &= (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-        cell = row * cols + col
-        keep[keep] &= inside_flat[cell[keep]]
-        kept_points.append(points[keep])
-        kept_cell.append(cell[keep])
-        kept_camera.append(np.full(int(keep.sum()), index, dtype=np.uint8))
+        cell = np.where(keep, row * cols + col, 0)
+        keep &= inside_flat[cell]
+        kept = np.flatnonzero(keep)
+        kept_points.append(points.take(kept, axis=0))
+        kept_cell.append(cell.take(kept))
+        kept_camera.append(np.full(len(kept), index, dtype=np.uint8))
     if not kept_points:
         empty = np.empty((0, 3), np.float32)
         return FusedCloud(empty, np.empty(0, np.uint8), np.empty(0, np.int64), 0)

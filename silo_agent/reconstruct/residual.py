@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.reconstruct.grid import FusedCloud, Grid
+from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid
 
 MAX_SPREAD_M = 0.05  # a camera's points in a cell spread more in height: a wall, not a surface
 MAX_SLOPE = 1.0  # 45 deg; grain stands at 23-40 deg, walls and pile edges seen edge-on do not
@@ -50,56 +50,54 @@ def pair_key(a: str, b: str) -> str:
 
 def registration_residuals(
     fused: FusedCloud, grid: Grid, serials: Sequence[str], min_points: int = 5,
-    min_cells: int = 50,
+    min_cells: int = 50, moments: CellMoments | None = None,
 ) -> dict[str, PairResidual]:  # fmt: skip
     """Residual of every camera pair that shares at least `min_cells` cells.
 
     A cell counts for a camera when it holds at least `min_points` of its points. Pairs are
-    ordered as the cameras are in the scan (`a` before `b`).
+    ordered as the cameras are in the scan (`a` before `b`). `moments` are those of `fused`
+    when the caller already has them.
     """
     n_cams = len(serials)
     if n_cams < 2 or len(fused.points) == 0:
         return {}
     rows, cols = grid.shape
-    n_cells = rows * cols
-    key = fused.cell * n_cams + fused.camera.astype(np.int64)
-    size = n_cells * n_cams
-    count = np.bincount(key, minlength=size).reshape(n_cells, n_cams)
-    pts = fused.points.astype(np.float64)
+    if moments is None:
+        moments = CellMoments.of(fused.points, fused.camera, fused.cell, rows * cols, n_cams)
+    count = moments.count
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = [
-            (np.bincount(key, pts[:, axis], size).reshape(n_cells, n_cams) / count)
-            for axis in range(3)
-        ]
-    z = pts[:, 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        spread = np.sqrt(np.maximum(
-            np.bincount(key, z * z, size).reshape(n_cells, n_cams) / count - mean[2] ** 2, 0.0))
+        mean_z = moments.sum_z / count
+        spread = np.sqrt(np.maximum(moments.sum_zz / count - mean_z**2, 0.0))
     # a camera's cell is a surface seen from above, not a wall or post standing in it
     seen = (count >= min_points) & (spread <= MAX_SPREAD_M)
-    shared = seen.sum(axis=1) >= 2
+    shared = seen.sum(axis=0) >= 2
     if not np.any(shared):
         return {}
     # slope from the cameras' mean surface (cells any camera sees; NaN elsewhere)
     with np.errstate(invalid="ignore", divide="ignore"):
-        surface = np.where(seen, mean[2], 0.0).sum(axis=1) / seen.sum(axis=1)
+        surface = np.where(seen, mean_z, 0.0).sum(axis=0) / seen.sum(axis=0)
     grad_y, grad_x = np.gradient(surface.reshape(rows, cols), grid.step)
     grad_x, grad_y = grad_x.ravel(), grad_y.ravel()
     usable = shared & np.isfinite(grad_x) & np.isfinite(grad_y)
     usable &= np.hypot(grad_x, grad_y) <= MAX_SLOPE  # steeper than grain stands: walls, edges
     cells = np.flatnonzero(usable)
-    mx, my, mz = (m[cells] for m in mean)
-    gx, gy, ok = grad_x[cells], grad_y[cells], seen[cells]
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN where a camera has no point
+        mx = moments.sum_x[:, cells] / count[:, cells]
+        my = moments.sum_y[:, cells] / count[:, cells]
+    mz = mean_z[:, cells]
+    gx, gy, ok = grad_x[cells], grad_y[cells], seen[:, cells]
     out: dict[str, PairResidual] = {}
     for i in range(n_cams):
         for j in range(i + 1, n_cams):
-            both = ok[:, i] & ok[:, j]
+            both = ok[i] & ok[j]
             n = int(both.sum())
             if n < min_cells:
                 continue
-            diff = (mz[both, i] - mz[both, j]) - gx[both] * (mx[both, i] - mx[both, j]) - gy[
-                both
-            ] * (my[both, i] - my[both, j])
+            diff = (
+                (mz[i, both] - mz[j, both])
+                - gx[both] * (mx[i, both] - mx[j, both])
+                - gy[both] * (my[i, both] - my[j, both])
+            )
             median = float(np.median(diff))
             mad = float(np.median(np.abs(diff - median)))
             residual = PairResidual(serials[i], serials[j], median, mad, n)
