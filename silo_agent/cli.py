@@ -568,8 +568,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from silo_agent.heap import keep_freed_memory
     from silo_agent.log import configure_logging
 
+    keep_freed_memory()
     configure_logging(args.log_level)
     handler: Handler = args.handler
     try:

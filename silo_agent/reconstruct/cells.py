@@ -1,8 +1,9 @@
 """Clustered means per cell (paper 2.4, Algorithm 1) and voxel down-sampling (paper 2.3.3).
 
-Everything runs on one sorted int64 key per point: (cell, height, camera). Sorting it puts
-every cell's points together in height order, so 1-D density clustering is a segment
-reduction with no loop over cells; the key carries all the sorted data (no argsort, no gather).
+Everything runs on one sorted int64 key per point: (cell, height bin, camera, height within
+the bin). Sorting it puts every cell's points together in height order, so 1-D density
+clustering is a segment reduction with no loop over cells; the key carries all the sorted data
+(no argsort, no gather).
 
 Two refinements over the paper, both measured in bench/accuracy.py:
 - a cluster's centroid is the mean over cameras of each camera's mean height in it, so a
