@@ -13,6 +13,8 @@ bench/accuracy.py compares both.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import linalg as sparse_linalg
@@ -69,56 +71,80 @@ def _laplace_system(
 
     Only neighbours inside `domain` (the region) take part: the region edge is a free
     (zero-flux) boundary, so a hole touching it is shaped by the data around it alone.
+
+    Neighbours are read by flat offsets into the grid padded by one cell (the pad is outside
+    the domain), and the CSR arrays are written directly: unknowns are numbered in row-major
+    order, so up, left, self, right, down is already column order and scipy need not sort.
     """
-    rows, cols = height.shape
-    index = np.full(height.shape, -1, dtype=np.int64)
-    count = int(unknown.sum())
-    index[unknown] = np.arange(count)
-    r, c = np.nonzero(unknown)
-    diagonal = np.zeros(count)
+    rows, cols = unknown.shape
+    width = cols + 2
+    cells = np.flatnonzero(np.pad(unknown, 1))  # padded flat position of each unknown
+    count = cells.size
+    number = np.arange(count, dtype=np.int32)
+    index = np.full((rows + 2) * width, -1, dtype=np.int32)  # -1: not an unknown
+    index[cells] = number
+    inside = np.pad(domain, 1).ravel()
+    source = np.pad(np.where(domain & ~unknown, height, 0.0), 1).ravel()  # known, in domain
+
+    columns = np.empty((count, 5), dtype=np.int32)  # -1 where the neighbour is no unknown
+    columns[:, 2] = number
+    degree = np.zeros(count)  # in-domain neighbours
     rhs = np.zeros(count)
-    row_ids, col_ids = [], []
-    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        nr, nc = r + dr, c + dc
-        ok = (nr >= 0) & (nr < rows) & (nc >= 0) & (nc < cols)
-        ok[ok] &= domain[nr[ok], nc[ok]]
-        me = np.flatnonzero(ok)
-        diagonal[me] += 1.0
-        neighbour = index[nr[ok], nc[ok]]
-        free = neighbour >= 0
-        row_ids.append(me[free])
-        col_ids.append(neighbour[free])
-        rhs += np.bincount(me[~free], height[nr[ok][~free], nc[ok][~free]], minlength=count)
-    off_rows, off_cols = np.concatenate(row_ids), np.concatenate(col_ids)
-    matrix = sparse.csr_matrix(
-        (
-            np.concatenate([diagonal, -np.ones(len(off_rows))]),
-            (
-                np.concatenate([np.arange(count), off_rows]),
-                np.concatenate([np.arange(count), off_cols]),
-            ),
-        ),
-        shape=(count, count),
-    )
+    length = np.ones(count, dtype=np.int32)  # entries in the row
+    before = np.zeros(count, dtype=np.int32)  # entries left of the diagonal
+    for slot, offset in ((0, -width), (1, -1), (3, 1), (4, width)):
+        neighbour = cells + offset
+        column = index[neighbour]
+        columns[:, slot] = column
+        linked = column >= 0
+        length += linked
+        if slot < 2:
+            before += linked
+        degree += inside[neighbour]
+        rhs += source[neighbour]
+
+    indptr = np.zeros(count + 1, dtype=np.int32)
+    np.cumsum(length, out=indptr[1:])
+    indices = np.extract(columns >= 0, columns)  # 1-D extract: faster than columns[mask]
+    data = np.full(indices.size, -1.0)
+    data[indptr[:-1] + before] = degree
+    matrix = sparse.csr_matrix((data, indices, indptr), shape=(count, count))
+    matrix.has_sorted_indices = True
     return matrix, rhs
 
 
-def _coarsen(height: np.ndarray, known: np.ndarray, domain: np.ndarray):
+def _direct_solve(matrix: sparse.csr_matrix, rhs: np.ndarray) -> np.ndarray:
+    """Sparse LU solve; all NaN (and a warning) if exactly singular, as `spsolve` does.
+
+    panel_size=1, relax=1 suit these very sparse systems: about a third faster than the
+    defaults `spsolve` uses, same solution.
+    """
+    try:
+        lu = sparse_linalg.splu(matrix.tocsc(), panel_size=1, relax=1)
+    except RuntimeError:  # "Factor is exactly singular"
+        warnings.warn("Matrix is exactly singular", sparse_linalg.MatrixRankWarning, stacklevel=2)
+        return np.full_like(rhs, np.nan)
+    return lu.solve(rhs)
+
+
+def _coarsen(
+    height: np.ndarray, known: np.ndarray, domain: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """2x2 block means of the known cells, for a cheap first solution of a large hole."""
     rows, cols = height.shape
-    pr, pc = rows % 2, cols % 2
-    pad = ((0, pr), (0, pc))
+    pad = ((0, rows % 2), (0, cols % 2))
     h = np.pad(np.where(known, height, 0.0), pad)
-    k = np.pad(known, pad).astype(float)
+    k = np.pad(known, pad).astype(np.float64)
     d = np.pad(domain, pad)
 
     def blocks(a: np.ndarray) -> np.ndarray:
-        return a.reshape(a.shape[0] // 2, 2, a.shape[1] // 2, 2).sum(axis=(1, 3))
+        # Strided adds: several times faster than reshape(...).sum(axis=(1, 3)).
+        return a[::2, ::2] + a[1::2, ::2] + a[::2, 1::2] + a[1::2, 1::2]
 
     weight = blocks(k)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        coarse = np.where(weight > 0, blocks(h) / weight, 0.0)
-    return coarse, weight > 0, blocks(d.astype(float)) > 0
+    coarse_known = weight > 0
+    coarse = np.divide(blocks(h), weight, out=np.zeros_like(weight), where=coarse_known)
+    return coarse, coarse_known, d[::2, ::2] | d[1::2, ::2] | d[::2, 1::2] | d[1::2, 1::2]
 
 
 def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
@@ -130,18 +156,17 @@ def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> 
     if not np.any(known & domain):
         raise ValueError("no observed cell to fill from")
     unknown = domain & ~known
-    count = int(unknown.sum())
     out = np.where(known, height, np.nan)
-    if count == 0:
+    cells = np.flatnonzero(unknown)  # flat positions: cheaper than 2-D boolean indexing
+    if cells.size == 0:
         return out
-    matrix, rhs = _laplace_system(np.where(known, height, 0.0), unknown, domain)
-    if count <= _DIRECT_MAX_UNKNOWNS:
-        out[unknown] = sparse_linalg.spsolve(matrix.tocsc(), rhs)
+    matrix, rhs = _laplace_system(height, unknown, domain)
+    if cells.size <= _DIRECT_MAX_UNKNOWNS:
+        np.put(out, cells, _direct_solve(matrix, rhs))
         return out
-    coarse_h, coarse_known, coarse_domain = _coarsen(height, known, domain)
-    coarse = membrane_fill(coarse_h, coarse_known, coarse_domain)
-    guess = np.repeat(np.repeat(np.nan_to_num(coarse), 2, axis=0), 2, axis=1)
-    guess = guess[: height.shape[0], : height.shape[1]]
-    solution, _ = sparse_linalg.cg(matrix, rhs, x0=guess[unknown], rtol=1e-5, maxiter=200)
-    out[unknown] = solution
+    coarse = np.nan_to_num(membrane_fill(*_coarsen(height, known, domain)))
+    r, c = np.divmod(cells, height.shape[1])
+    guess = coarse[r // 2, c // 2]  # each fine cell starts from its coarse block's value
+    solution, _ = sparse_linalg.cg(matrix, rhs, x0=guess, rtol=1e-5, maxiter=200)
+    np.put(out, cells, solution)
     return out

@@ -1,0 +1,128 @@
+"""membrane_fill's vectorised system assembly against the plain definition of the equations.
+
+The Laplace system is written straight into CSR (slot order, diagonal placement, compaction),
+so these tests rebuild it cell by cell on small grids, and check the filled surface against
+the 5-point equations evaluated on the output grid itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse import linalg as sparse_linalg
+
+from silo_agent.reconstruct.fill import _laplace_system, membrane_fill
+
+_STEPS = ((-1, 0), (0, -1), (0, 1), (1, 0))
+
+
+def _reference_system(
+    height: np.ndarray, unknown: np.ndarray, domain: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dense matrix and right side from the definition, one cell at a time."""
+    rows, cols = unknown.shape
+    number = -np.ones(unknown.shape, dtype=int)
+    number[unknown] = np.arange(unknown.sum())
+    matrix = np.zeros((unknown.sum(), unknown.sum()))
+    rhs = np.zeros(unknown.sum())
+    for r, c in zip(*np.nonzero(unknown), strict=True):
+        me = number[r, c]
+        for dr, dc in _STEPS:
+            nr, nc = r + dr, c + dc
+            if not (0 <= nr < rows and 0 <= nc < cols and domain[nr, nc]):
+                continue
+            matrix[me, me] += 1.0
+            if unknown[nr, nc]:
+                matrix[me, number[nr, nc]] -= 1.0
+            else:
+                rhs[me] += height[nr, nc]
+    return matrix, rhs
+
+
+def _harmonic_residual(filled: np.ndarray, unknown: np.ndarray, domain: np.ndarray):
+    """degree * h - sum of in-domain neighbours, at each unknown cell of the output grid."""
+    padded = np.pad(np.where(domain, filled, 0.0), 1)
+    inside = np.pad(domain, 1).astype(float)
+    rows, cols = filled.shape
+    residual = np.zeros(filled.shape)
+    for dr, dc in _STEPS:
+        view = (slice(1 + dr, 1 + dr + rows), slice(1 + dc, 1 + dc + cols))
+        residual += inside[view] * np.where(unknown, filled, 0.0) - padded[view]
+    return residual[unknown]
+
+
+def _case(shape: tuple[int, int], seed: int, full_domain: bool):
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
+    height = 1.0 + 0.3 * np.sin(rows / 5.0) + 0.2 * np.cos(cols / 3.0)
+    known = rng.random(shape) < 0.5
+    known[: max(1, shape[0] // 2), : max(1, shape[1] // 3)] = False  # a hole on the grid edge
+    if full_domain:
+        domain = np.ones(shape, dtype=bool)
+    else:  # a disk: holes touch a domain edge that is not the grid edge
+        centre_r, centre_c = (shape[0] - 1) / 2, (shape[1] - 1) / 2
+        radius = 0.45 * max(shape)
+        domain = (rows - centre_r) ** 2 + (cols - centre_c) ** 2 <= radius**2
+    known[domain.nonzero()[0][0], domain.nonzero()[1][0]] = True  # data in the domain
+    return np.where(known, height, np.nan), known, domain
+
+
+@pytest.mark.parametrize("shape", [(1, 7), (6, 1), (2, 3), (9, 14), (17, 12)])
+@pytest.mark.parametrize("full_domain", [True, False])
+def test_system_matches_the_cell_by_cell_definition(shape, full_domain) -> None:
+    height, known, domain = _case(shape, seed=sum(shape), full_domain=full_domain)
+    unknown = domain & ~known
+    assert unknown.any()
+    matrix, rhs = _laplace_system(height, unknown, domain)
+    expected_matrix, expected_rhs = _reference_system(np.where(known, height, 0.0), unknown, domain)
+    np.testing.assert_array_equal(matrix.toarray(), expected_matrix)
+    np.testing.assert_allclose(rhs, expected_rhs, rtol=0, atol=1e-12)
+    canonical = matrix.copy()
+    canonical.sum_duplicates()  # sorts too: no change if already sorted and unique
+    np.testing.assert_array_equal(canonical.indices, matrix.indices)
+    assert canonical.nnz == matrix.nnz == np.count_nonzero(expected_matrix)
+
+
+@pytest.mark.parametrize("full_domain", [True, False])
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_direct_fill_satisfies_the_equations(full_domain, order) -> None:
+    height, known, domain = _case((41, 57), seed=3, full_domain=full_domain)
+    height, known, domain = (np.asarray(a, order=order) for a in (height, known, domain))
+    filled = membrane_fill(height, known, domain)
+    unknown = domain & ~known
+    np.testing.assert_array_equal(filled[known], height[known])
+    assert np.all(np.isnan(filled[~known & ~domain]))
+    assert np.all(np.isfinite(filled[unknown]))
+    assert np.abs(_harmonic_residual(filled, unknown, domain)).max() < 1e-9
+
+
+def test_iterative_fill_satisfies_the_equations_to_solver_tolerance() -> None:
+    height, known, domain = _case((301, 257), seed=5, full_domain=False)
+    unknown = domain & ~known
+    assert unknown.sum() > 30_000  # the CG path, warm-started from the coarse level
+    filled = membrane_fill(height, known, domain)
+    assert np.all(np.isfinite(filled[unknown]))
+    _, rhs = _laplace_system(height, unknown, domain)
+    residual = _harmonic_residual(filled, unknown, domain)
+    assert np.linalg.norm(residual) <= 1.01e-5 * np.linalg.norm(rhs)  # slack: rounding
+
+
+def test_nothing_to_fill_returns_the_known_heights() -> None:
+    known = np.ones((3, 4), dtype=bool)
+    known[0, 0] = False
+    domain = known.copy()  # the one unknown cell lies outside the domain
+    height = np.arange(12.0).reshape(3, 4)
+    filled = membrane_fill(height, known, domain)
+    np.testing.assert_array_equal(filled, np.where(known, height, np.nan))
+
+
+def test_a_domain_cell_cut_off_from_data_gives_nan_like_spsolve() -> None:
+    known = np.zeros((5, 9), dtype=bool)
+    known[:, 0] = True
+    domain = np.zeros((5, 9), dtype=bool)
+    domain[:, :4] = True
+    domain[2, 6] = True  # no in-domain neighbour: an exactly singular system
+    height = np.where(known, 2.0, np.nan)
+    with pytest.warns(sparse_linalg.MatrixRankWarning):
+        filled = membrane_fill(height, known, domain)
+    assert np.all(np.isnan(filled[domain & ~known]))
