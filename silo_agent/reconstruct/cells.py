@@ -21,8 +21,8 @@ import numpy as np
 from silo_agent.reconstruct.grid import CellMoments, Grid
 
 Z_QUANTUM_M = 1e-4  # height resolution inside the sort key
-Z_MIN_BITS = 20  # room for the height bits whatever the span (2^20 x 0.1 mm = 105 m)
-CAMERA_BITS = 8  # up to 256 cameras
+CAMERA_BITS = 8  # voxel key: up to 256 cameras
+RADIX_DIGIT_BITS = 16  # numpy's stable argsort is a radix sort for 16-bit integers
 RELATIVE_MIN_POINTS = 0.25  # default: a cluster needs 1/4 of the points of the cell's largest
 EPS_NOISE_FACTOR = 3.0  # default eps: 3 x the typical spread of one surface in a cell
 EPS_MIN_M, EPS_MAX_M = 0.01, 0.10
@@ -54,6 +54,19 @@ def _run_starts(values: np.ndarray) -> np.ndarray:
     starts[:1] = True
     np.not_equal(values[1:], values[:-1], out=starts[1:])
     return np.flatnonzero(starts)
+
+
+def _radix_sorted(key: np.ndarray, low: int, high: int) -> np.ndarray:
+    """`key` ordered by its bits [low, high); bits below `low` ride along, in input order.
+
+    LSD radix sort in 16-bit digits: numpy's stable argsort of uint16 is a counting sort, and
+    two or three passes of it with a gather beat numpy's comparison sort of int64 (no SIMD
+    sort is dispatched on every CPU) by 2-3x on a million keys.
+    """
+    for shift in range(low, high, RADIX_DIGIT_BITS):
+        digit = ((key >> shift) & ((1 << RADIX_DIGIT_BITS) - 1)).astype(np.uint16)
+        key = key[np.argsort(digit, kind="stable")]
+    return key
 
 
 def voxel_downsample(
@@ -102,40 +115,43 @@ def clustered_means(
         typical = float(np.sqrt(np.median(variance))) if np.any(crowded) else 0.0
         eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
 
-    # ---- one sort: key = (cell, height bin of eps/2, camera, height within the bin), so each
-    # (cell, bin, camera) is a run of the sorted key, a "segment"; the rest works on segments
+    # ---- one sort: key = (cell, height bin of eps/2, camera, height within the bin), each field
+    # as narrow as the data allows; each (cell, bin, camera) is then a run of the sorted key, a
+    # "segment", and the rest works on segments
     z = points[:, 2]
     z0 = float(z.min())
     z_q = np.round((z - z0) * (1.0 / Z_QUANTUM_M)).astype(np.int64)
-    z_bits = max(Z_MIN_BITS, int(z_q.max()).bit_length())
-    if max(1, n_cells.bit_length()) + z_bits + CAMERA_BITS > 63:
+    bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
+    height_bits = max(1, (int(z_q.max()) >> bin_bits).bit_length())  # bins above z0
+    n_cams = moments.count.shape[0]
+    cam_bits = max(1, (n_cams - 1).bit_length())
+    sorted_bits = max(1, (n_cells - 1).bit_length()) + height_bits + cam_bits
+    if sorted_bits + bin_bits > 63:
         raise ValueError(
             f"height span {float(z.max()) - z0:.1f} m over {n_cells} cells does not fit the "
             "sort key; crop the cloud (ceiling_z) or use a coarser grid"
         )
-    bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
     fine_mask = (1 << bin_bits) - 1
-    key = cell << (z_bits + CAMERA_BITS)
-    key |= (z_q >> bin_bits) << (CAMERA_BITS + bin_bits)
+    key = cell << (height_bits + cam_bits + bin_bits)
+    key |= (z_q >> bin_bits) << (cam_bits + bin_bits)
     key |= camera.astype(np.int64) << bin_bits
     key |= z_q & fine_mask
-    key.sort()
+    key = _radix_sorted(key, bin_bits, bin_bits + sorted_bits)
     segment_key = key >> bin_bits
     s_start = _run_starts(segment_key)
     s_n = np.diff(np.append(s_start, len(key)))
     s_fine = np.add.reduceat(key & fine_mask, s_start)  # heights within the bin, summed
     s_key = segment_key[s_start]
-    s_cam = s_key & ((1 << CAMERA_BITS) - 1)
-    s_bin = s_key >> CAMERA_BITS  # (cell, height bin)
-    bin_mask = (1 << (z_bits - bin_bits)) - 1
-    s_z_sum = (s_n * ((s_bin & bin_mask) << bin_bits) + s_fine) * Z_QUANTUM_M  # above z0
+    s_cam = s_key & ((1 << cam_bits) - 1)
+    s_bin = s_key >> cam_bits  # (cell, height bin)
+    s_z_sum = (s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits) + s_fine) * Z_QUANTUM_M
 
     # ---- 1-D density clustering (DBSCAN on a height histogram): a bin is core when its 3-bin
     # neighbourhood holds CORE_DENSITY x the cell's densest one
     b_start = _run_starts(s_bin)
     b_n = np.add.reduceat(s_n, b_start)
     b_key = s_bin[b_start]
-    b_cell = b_key >> (z_bits - bin_bits)
+    b_cell = b_key >> height_bits
     cell_of_bins = _run_starts(b_cell)
     # bins i-1 and i are adjacent heights of one cell (consecutive keys: same cell, next bin)
     adjacent = b_key[1:] - b_key[:-1] == 1
@@ -171,7 +187,6 @@ def clustered_means(
     c_cell = b_cell[c_bin[new_cluster]]
 
     # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster
-    n_cams = moments.count.shape[0]
     pair = m_cluster * n_cams + s_cam[member]
     size = n_clusters * n_cams
     pair_n = np.bincount(pair, m_n, size)
