@@ -196,7 +196,10 @@ def _excluding(fused: FusedCloud, discs: Sequence[tuple[float, float, float]]) -
     from silo_agent.detect import points_outside
 
     keep = points_outside(fused.points, discs)
-    return FusedCloud(fused.points[keep], fused.camera[keep], fused.cell[keep], fused.raw_count)
+    points, camera, cell = fused.points[keep], fused.camera[keep], fused.cell[keep]
+    n_cams, n_cells = fused.moments.count.shape
+    moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
+    return FusedCloud(points, camera, cell, fused.raw_count, moments)
 
 
 def reconstruct(
@@ -220,11 +223,9 @@ def reconstruct(
         fused = _excluding(fused, exclude)
     clock.lap("fuse_crop")
     calibration = calibration or CalibrationConfig()
-    n_cells, n_cams = grid.shape[0] * grid.shape[1], len(scan.cameras)
-    moments = CellMoments.of(fused.points, fused.camera, fused.cell, n_cells, n_cams)
     registration = registration_residuals(
         fused, grid, [c.serial for c in scan.cameras], calibration.residual_min_points,
-        calibration.residual_min_cells, moments,
+        calibration.residual_min_cells,
     )  # fmt: skip
     clock.lap("registration_residual")
     if settings.method != "bicm":
@@ -236,11 +237,12 @@ def reconstruct(
         result.registration = registration
         return result
 
-    points, camera, cell = fused.points, fused.camera, fused.cell
+    points, camera, cell, moments = fused.points, fused.camera, fused.cell, fused.moments
     if settings.voxel_size_m is not None:
         points, camera = voxel_downsample(points, camera, settings.voxel_size_m)
         row, col = grid.cell_index(points[:, 0], points[:, 1])
         cell = row * grid.shape[1] + col
+        n_cams, n_cells = moments.count.shape
         moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
         clock.lap("voxel_downsample")
     cells = clustered_means(

@@ -59,23 +59,14 @@ def _grid_over(region_bytes: bytes, region_shape: tuple[int, ...], step: float) 
 
 
 @dataclass(frozen=True)
-class FusedCloud:
-    """Points of all cameras in the silo frame, cropped to the region and under the ceiling."""
-
-    points: np.ndarray  # (N, 3) float32
-    camera: np.ndarray  # (N,) uint8 index into the scan's cameras
-    cell: np.ndarray  # (N,) int64 flat cell index (row * cols + col)
-    raw_count: int
-
-
-@dataclass(frozen=True)
 class CellMoments:
     """Per (camera, cell): point count and sums of x, y, z and z^2; arrays (cameras, cells).
 
-    Computed once per scan and shared by the registration residual (per-camera means and
-    spreads) and the clustered means (cell centroids, the noise that sets eps). Camera-major,
-    so that sums over cameras add whole rows (summing a short last axis is several times
-    slower).
+    Computed once per scan while fusing and shared by the registration residual (per-camera
+    means and spreads) and the clustered means (cell centroids, the noise that sets eps).
+    Camera-major, so that sums over cameras add whole rows (summing a short last axis is
+    several times slower), and filled one camera at a time: a bincount into one camera's row
+    stays in cache where one into all cameras' does not.
     """
 
     count: np.ndarray
@@ -85,16 +76,38 @@ class CellMoments:
     sum_zz: np.ndarray
 
     @classmethod
+    def zeros(cls, n_cams: int, n_cells: int) -> CellMoments:
+        return cls(*(np.zeros((n_cams, n_cells)) for _ in range(5)))
+
+    @classmethod
     def of(cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int,
            n_cams: int) -> CellMoments:  # fmt: skip
-        key = camera.astype(np.int64) * n_cells + cell
-        size = n_cells * n_cams
+        moments = cls.zeros(n_cams, n_cells)
+        for index in range(n_cams):
+            mine = camera == index
+            moments.set_camera(index, points[mine], cell[mine])
+        return moments
+
+    def set_camera(self, index: int, points: np.ndarray, cell: np.ndarray) -> None:
+        """Fill camera `index`'s row from its points and their cells."""
+        n_cells = self.count.shape[1]
         z = points[:, 2].astype(np.float64)
+        self.count[index] = np.bincount(cell, None, n_cells)
+        self.sum_x[index] = np.bincount(cell, points[:, 0], n_cells)
+        self.sum_y[index] = np.bincount(cell, points[:, 1], n_cells)
+        self.sum_z[index] = np.bincount(cell, z, n_cells)
+        self.sum_zz[index] = np.bincount(cell, z * z, n_cells)
 
-        def total(weights: np.ndarray | None) -> np.ndarray:
-            return np.bincount(key, weights, size).reshape(n_cams, n_cells)
 
-        return cls(total(None), total(points[:, 0]), total(points[:, 1]), total(z), total(z * z))
+@dataclass(frozen=True)
+class FusedCloud:
+    """Points of all cameras in the silo frame, cropped to the region and under the ceiling."""
+
+    points: np.ndarray  # (N, 3) float32
+    camera: np.ndarray  # (N,) uint8 index into the scan's cameras
+    cell: np.ndarray  # (N,) int64 flat cell index (row * cols + col)
+    raw_count: int
+    moments: CellMoments  # of these points
 
 
 def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCloud:
@@ -103,6 +116,7 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
     inside_flat = grid.inside.ravel() > 0
     inverse_step = 1.0 / grid.step
     kept_points, kept_camera, kept_cell = [], [], []
+    moments = CellMoments.zeros(len(cameras), rows * cols)
     raw = 0
     for index, camera in enumerate(cameras):
         points = camera.points_in_silo()
@@ -118,9 +132,11 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
         kept_points.append(points.take(kept, axis=0))
         kept_cell.append(cell.take(kept))
         kept_camera.append(np.full(len(kept), index, dtype=np.uint8))
+        moments.set_camera(index, kept_points[-1], kept_cell[-1])
     if not kept_points:
         empty = np.empty((0, 3), np.float32)
-        return FusedCloud(empty, np.empty(0, np.uint8), np.empty(0, np.int64), 0)
+        return FusedCloud(empty, np.empty(0, np.uint8), np.empty(0, np.int64), 0, moments)
     return FusedCloud(
-        np.concatenate(kept_points), np.concatenate(kept_camera), np.concatenate(kept_cell), raw
+        np.concatenate(kept_points), np.concatenate(kept_camera), np.concatenate(kept_cell), raw,
+        moments,
     )

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid
+from silo_agent.reconstruct.grid import FusedCloud, Grid
 
 MAX_SPREAD_M = 0.05  # a camera's points in a cell spread more in height: a wall, not a surface
 MAX_SLOPE = 1.0  # 45 deg; grain stands at 23-40 deg, walls and pile edges seen edge-on do not
@@ -50,20 +50,18 @@ def pair_key(a: str, b: str) -> str:
 
 def registration_residuals(
     fused: FusedCloud, grid: Grid, serials: Sequence[str], min_points: int = 5,
-    min_cells: int = 50, moments: CellMoments | None = None,
+    min_cells: int = 50,
 ) -> dict[str, PairResidual]:  # fmt: skip
     """Residual of every camera pair that shares at least `min_cells` cells.
 
     A cell counts for a camera when it holds at least `min_points` of its points. Pairs are
-    ordered as the cameras are in the scan (`a` before `b`). `moments` are those of `fused`
-    when the caller already has them.
+    ordered as the cameras are in the scan (`a` before `b`).
     """
     n_cams = len(serials)
     if n_cams < 2 or len(fused.points) == 0:
         return {}
     rows, cols = grid.shape
-    if moments is None:
-        moments = CellMoments.of(fused.points, fused.camera, fused.cell, rows * cols, n_cams)
+    moments = fused.moments
     count = moments.count
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_z = moments.sum_z / count
