@@ -33,8 +33,9 @@ class Grid:
 
     def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(row, col) of points; callers keep only those inside `valid_cells`."""
-        col = np.floor((x - self.origin[0]) / self.step).astype(np.int64)
-        row = np.floor((y - self.origin[1]) / self.step).astype(np.int64)
+        inverse_step = 1.0 / self.step  # a multiply: cheaper than a divide over millions of points
+        col = np.floor((x - self.origin[0]) * inverse_step).astype(np.int64)
+        row = np.floor((y - self.origin[1]) * inverse_step).astype(np.int64)
         return row, col
 
     def centres(self) -> tuple[np.ndarray, np.ndarray]:
@@ -114,15 +115,13 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
     """Paper 2.3.1: transform every cloud by its extrinsic, crop the ceiling and the region."""
     rows, cols = grid.shape
     inside_flat = grid.inside.ravel() > 0
-    inverse_step = 1.0 / grid.step
     kept_points, kept_camera, kept_cell = [], [], []
     moments = CellMoments.zeros(len(cameras), rows * cols)
     raw = 0
     for index, camera in enumerate(cameras):
         points = camera.points_in_silo()
         raw += len(points)
-        col = np.floor((points[:, 0] - grid.origin[0]) * inverse_step).astype(np.int64)
-        row = np.floor((points[:, 1] - grid.origin[1]) * inverse_step).astype(np.int64)
+        row, col = grid.cell_index(points[:, 0], points[:, 1])
         keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
         if site.ceiling_z is not None:
             keep &= points[:, 2] <= site.ceiling_z
