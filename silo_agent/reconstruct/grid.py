@@ -70,15 +70,16 @@ class CellMoments:
     stays in cache where one into all cameras' does not.
     """
 
-    count: np.ndarray
-    sum_x: np.ndarray
+    count: np.ndarray  # int64
+    sum_x: np.ndarray  # float64, like the other sums
     sum_y: np.ndarray
     sum_z: np.ndarray
     sum_zz: np.ndarray
 
     @classmethod
     def zeros(cls, n_cams: int, n_cells: int) -> CellMoments:
-        return cls(*(np.zeros((n_cams, n_cells)) for _ in range(5)))
+        count = np.zeros((n_cams, n_cells), dtype=np.int64)
+        return cls(count, *(np.zeros((n_cams, n_cells)) for _ in range(4)))
 
     @classmethod
     def of(cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int,
