@@ -14,13 +14,18 @@ For every scene x view set x seed, the simulator renders cameras that really sit
   (calibrated extrinsic against the true one) is split at the pile's centre on the floor into
   a vertical part (height there, tilt) and a horizontal part (plan shift there, yaw), and the
   scan is reconstructed with only one part kept; with the rig's dilation (how far the cameras
-  sit, on average, radially out from where they really are) and mean height error.
+  sit, on average, radially out from where they really are) and mean height error;
+- with `--pool 1,4`: the same after `calibrate --floor` on N calibration scans pooled
+  (`pool_scans`): the seed's perturbed rig (same wrong extrinsics, same units) taken N times
+  in a row, independent sensor noise in each (the simulator's successive frames; the first is
+  the N = 1 scan), the volume still measured on the first scan against the same 'perfect'.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,13 +33,27 @@ import numpy as np
 from benchlib import header
 from scipy.spatial.transform import Rotation
 
-from silo_agent.calibrate import DriftMonitor, calibrate, fit_plane, floor_points, with_extrinsics
+from silo_agent.calibrate import (
+    DriftMonitor,
+    calibrate,
+    fit_plane,
+    floor_points,
+    pool_scans,
+    with_extrinsics,
+)
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan
 from silo_agent.sim.layouts import axis_angle, view_pose
 from silo_agent.sim.scenes import make_scene
-from silo_agent.sim.simulate import SimRig, SimView, d455_intrinsics, focal_for, simulate
+from silo_agent.sim.simulate import (
+    SimRig,
+    SimView,
+    d455_intrinsics,
+    focal_for,
+    plan_views,
+    simulate,
+)
 
 VIEWS = {"A1A5": ["A1", "A5"], "A1A3A5A7": ["A1", "A3", "A5", "A7"]}
 ERROR = (0.5, 0.01)
@@ -59,6 +78,24 @@ class Run:
     dilation_mm: float  # mean radial error of the cameras' plan positions (+: too far out)
     height_mm: float  # mean height error of the cameras' views at the pile centre
     floor_fit_mm: float  # mean height at the pile centre of the floors fitted on true poses
+
+
+@dataclass(frozen=True)
+class Pooled:
+    """After `calibrate --floor` on `n` calibration scans pooled (same seed, same rig)."""
+
+    scene: str
+    views: str
+    seed: int
+    n: int
+    after_pp: float  # volume of the first scan with the calibrated extrinsics, minus perfect
+    residual_after_m: float
+    seconds: float
+    vertical_pp: float
+    horizontal_pp: float
+    dilation_mm: float
+    height_mm: float
+    floor_fit_mm: float
 
 
 def floor_fit_height(scan: Scan, truth: dict, pivot: np.ndarray) -> float:
@@ -106,9 +143,52 @@ def _max_residual(residuals: dict) -> float:
     return max((abs(r.median_m) for r in residuals.values()), default=float("nan"))
 
 
-def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig) -> Run:
+def repeated_scans(rig: SimRig, views: str, seed: int, count: int) -> list[Scan]:
+    """`count` scans of the seed's perturbed rig taken one after another: the same cameras
+    at the same wrong poses, independent sensor noise per scan (successive frames of one
+    trace); the first is exactly `simulate(...)`'s scan of this seed."""
+    base = simulate(rig.scene, VIEWS[views], seed, ERROR, rig=rig)
+    if count == 1:
+        return [base]
+    frames = {v.serial: rig.frames(v, seed, count)
+              for v in plan_views(rig.scene, VIEWS[views], seed, ERROR)}
+    for camera in base.cameras:  # frame 0 is the base scan's: same poses, same noise
+        assert np.array_equal(frames[camera.serial][0].points()[0], camera.points)
+    return [base] + [
+        replace(base, scan_id=f"{base.scan_id}-f{k}",
+                cameras=[replace(c, points=frames[c.serial][k].points()[0])
+                         for c in base.cameras])
+        for k in range(1, count)
+    ]
+
+
+def pooled_run(rig: SimRig, views: str, seed: int, scans: list[Scan], perfect: float,
+               settings: ReconstructionConfig) -> Pooled:  # fmt: skip
+    """`calibrate --floor` on all `scans` pooled; volumes on the first scan."""
+    scene, scan = rig.scene, scans[0]
+    truth = {c.serial: np.asarray(c.extra["sim_true_extrinsic"]) for c in scan.cameras}
+    pooled = pool_scans(scans)
+
+    def pp(poses: dict) -> float:
+        cams = with_extrinsics(scan.cameras, poses)
+        volume = reconstruct(replace(scan, cameras=cams), settings).volume_m3
+        return 100.0 * (volume - perfect) / scene.volume_m3
+
+    started = time.perf_counter()
+    floor = calibrate(pooled, CalibrationConfig(), floor=True)
+    seconds = time.perf_counter() - started
+    pivot = np.array([scene.target[0], scene.target[1], scene.site.floor_z])
+    vertical, horizontal, dilation, height = split_errors(floor.extrinsics(), truth, pivot)
+    return Pooled(scene.name, views, seed, len(scans), pp(floor.extrinsics()),
+                  _max_residual(floor.residual_after), seconds, pp(vertical), pp(horizontal),
+                  dilation, height, floor_fit_height(pooled, truth, pivot))  # fmt: skip
+
+
+def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
+        pool: tuple[int, ...] = ()) -> tuple[Run, list[Pooled]]:  # fmt: skip
     scene = rig.scene
-    scan = simulate(scene, VIEWS[views], seed, ERROR, rig=rig)
+    scans = repeated_scans(rig, views, seed, max((1, *pool)))
+    scan = scans[0]
     truth = {c.serial: np.asarray(c.extra["sim_true_extrinsic"]) for c in scan.cameras}
 
     def volume(poses: dict | None) -> float:
@@ -126,12 +206,15 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig) -> R
 
     pivot = np.array([scene.target[0], scene.target[1], scene.site.floor_z])
     vertical, horizontal, dilation, height = split_errors(floor.extrinsics(), truth, pivot)
-    return Run(scene.name, views, seed, 100.0 * (perfect / scene.volume_m3 - 1),
-               pp(volume(None)), pp(volume(floor.extrinsics())), pp(volume(gravity.extrinsics())),
-               _max_residual(floor.residual_before), _max_residual(floor.residual_after),
-               _max_residual(gravity.residual_after), seconds, pp(volume(vertical)),
-               pp(volume(horizontal)), dilation, height,
-               floor_fit_height(scan, truth, pivot))  # fmt: skip
+    run = Run(scene.name, views, seed, 100.0 * (perfect / scene.volume_m3 - 1),
+              pp(volume(None)), pp(volume(floor.extrinsics())), pp(volume(gravity.extrinsics())),
+              _max_residual(floor.residual_before), _max_residual(floor.residual_after),
+              _max_residual(gravity.residual_after), seconds, pp(volume(vertical)),
+              pp(volume(horizontal)), dilation, height,
+              floor_fit_height(scan, truth, pivot))  # fmt: skip
+    pooled = [pooled_run(rig, views, seed, scans[:n], perfect, settings)
+              for n in pool if n > 1]
+    return run, pooled
 
 
 def knocked_scan(rig: SimRig, views: list[str], seed: int, knocked: str | None, axis: str,
@@ -282,30 +365,118 @@ def report(runs: list[Run]) -> list[str]:
     return [*lines, ""]
 
 
+def report_pooled(runs: list[Run], pooled: list[Pooled]) -> list[str]:
+    """After `--floor` with 1 and with N calibration scans pooled, side by side."""
+    single = [Pooled(r.scene, r.views, r.seed, 1, r.after_pp, r.residual_after_m, r.seconds,
+                     r.vertical_pp, r.horizontal_pp, r.dilation_mm, r.height_mm,
+                     r.floor_fit_mm) for r in runs]  # fmt: skip
+    rows = single + pooled
+    counts = sorted({p.n for p in rows})
+    label = " / ".join(str(n) for n in counts)
+    lines = ["## Several calibration scans pooled", "",
+             f"`calibrate --floor` on N = {label} calibration scans pooled (`pool_scans`, "
+             "`--scan` repeated): per seed the same perturbed rig (same wrong extrinsics, same "
+             "units) scanned N times in a row with independent sensor noise (the simulator's "
+             "successive frames; the first is the scan above). The volume is that of the first "
+             "scan with the calibrated extrinsics, against the same 'perfect'. Height: mean "
+             "height error of the cameras' views at the pile's centre; floor fit on true "
+             "poses: the leveling's own noise, on the pooled points.", "",
+             "| scene | views | "
+             + " | ".join(f"after --floor, N = {n}: mean abs / max (pp)" for n in counts)
+             + f" | rms height error, N = {label} (mm) "
+             f"| rms floor fit on true poses, N = {label} (mm) "
+             f"| calibrate time, N = {label} (s) |",
+             "| --- | --- |" + " ---: |" * (len(counts) + 3)]  # fmt: skip
+    groups: dict[tuple[str, str], list[Pooled]] = {}
+    for row in rows:
+        groups.setdefault((row.scene, row.views), []).append(row)
+
+    def per_n(group: list[Pooled], cell: Callable[[list[Pooled]], str], sep: str) -> str:
+        return sep.join(cell([r for r in group if r.n == n]) for n in counts)
+
+    def rms(values: list[float]) -> float:
+        return float(np.sqrt(np.mean(np.square(values))))
+
+    for (scene, views), group in groups.items():
+        after = per_n(group, lambda g: f"{np.mean([abs(r.after_pp) for r in g]):.2f} / "
+                                       f"{max(abs(r.after_pp) for r in g):.2f}", " | ")
+        height = per_n(group, lambda g: f"{rms([r.height_mm for r in g]):.2f}", " / ")
+        fit = per_n(group, lambda g: f"{rms([r.floor_fit_mm for r in g]):.2f}", " / ")
+        seconds = per_n(group, lambda g: f"{np.mean([r.seconds for r in g]):.1f}", " / ")
+        lines.append(f"| {scene} | {views} | {after} | {height} | {fit} | {seconds} |")
+    lines += ["", "### Targets, by number of scans pooled", "",
+              "| views | scans pooled | within 0.3 pp of perfect | mean abs (pp) | worst (pp) "
+              "| mean abs vertical part (pp) | mean abs horizontal part (pp) "
+              "| rms height error (mm) | worst residual after (mm) |",
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for views in VIEWS:
+        for n in counts:
+            g = [r for r in rows if r.views == views and r.n == n]
+            if not g:
+                continue
+            after = np.abs([r.after_pp for r in g])
+            residual = max(r.residual_after_m for r in g)
+            lines.append(
+                f"| {views} | {n} | {int((after <= TARGET_PP).sum())} of {len(g)} "
+                f"| {after.mean():.2f} | {after.max():.2f} "
+                f"| {np.mean([abs(r.vertical_pp) for r in g]):.2f} "
+                f"| {np.mean([abs(r.horizontal_pp) for r in g]):.2f} "
+                f"| {rms([r.height_mm for r in g]):.2f} | {residual * 1000:.1f} |")
+    lines += ["", "### Every scan, by number of scans pooled", "",
+              f"| scene | views | seed | after --floor, N = {label} (pp) "
+              f"| vertical part only, N = {label} (pp) | horizontal part only, N = {label} (pp) "
+              f"| height, N = {label} (mm) |",
+              "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in runs:
+        same = sorted((p for p in rows if (p.scene, p.views, p.seed) == (r.scene, r.views,
+                                                                         r.seed)),
+                      key=lambda p: p.n)  # fmt: skip
+
+        def cells(field: str, fmt: str, same: list[Pooled] = same) -> str:
+            return " / ".join(format(getattr(p, field), fmt) for p in same)
+
+        lines.append(f"| {r.scene} | {r.views} | {r.seed} | {cells('after_pp', '+.2f')} "
+                     f"| {cells('vertical_pp', '+.2f')} | {cells('horizontal_pp', '+.2f')} "
+                     f"| {cells('height_mm', '+.2f')} |")
+    return [*lines, ""]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default="cone,piles,ridge")
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=10, help="unchanged scans for drift")
+    parser.add_argument("--pool", default="1", metavar="N,N",
+                        help="numbers of calibration scans pooled per seed (1: the plain runs; "
+                             "e.g. 1,4 adds `calibrate --floor` on 4 scans of the same rig)")
     parser.add_argument("--out", type=Path, default=Path("bench/results/calibration.md"))
     args = parser.parse_args()
+    pool = tuple(sorted({int(n) for n in args.pool.split(",")} - {1}))
+    if any(n < 1 for n in pool):
+        parser.error("--pool: numbers of scans are 1 or more")
     settings = ReconstructionConfig()
-    runs = []
+    runs, pooled = [], []
     for name in args.scenes.split(","):
         rig = SimRig(make_scene(name))
         for views in VIEWS:
             for seed in range(args.seeds):
-                runs.append(one(rig, views, seed, settings))
-                r = runs[-1]
+                r, more = one(rig, views, seed, settings, pool)
+                runs.append(r)
+                pooled += more
                 print(f"{name} {views} seed {seed}: before {r.before_pp:+.2f} pp, after "
                       f"{r.after_pp:+.2f} pp, gravity {r.gravity_pp:+.2f} pp, residual "
                       f"{r.residual_before_m * 1000:.1f} -> {r.residual_after_m * 1000:.1f} mm, "
-                      f"{r.seconds:.1f} s", flush=True)
+                      f"{r.seconds:.1f} s"
+                      + "".join(f"; {p.n} scans pooled: after {p.after_pp:+.2f} pp, "
+                                f"{p.seconds:.1f} s" for p in more), flush=True)
     cone = SimRig(make_scene("cone"))
     lines = header("Calibration benchmark",
                    f"injected error per camera: {ERROR[0]} deg about a random axis and "
                    f"{ERROR[1] * 100:g} cm in a random direction; grid 2 cm; BICM defaults")
-    lines += report(runs) + drift(cone, settings, args.repeats) + residual_cost(cone, settings)
+    lines += report(runs)
+    if pool:
+        lines += report_pooled(runs, pooled)
+    lines += drift(cone, settings, args.repeats) + residual_cost(cone, settings)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))
     print("\n".join(lines))

@@ -236,44 +236,65 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from silo_agent.calibrate import (
         CalibrationError,
+        ScanMismatch,
         SerialMismatch,
         calibrate,
+        pool_scans,
         start_poses,
         write_calibrated_config,
     )
     from silo_agent.reconstruct import site_from_config
-    from silo_agent.scan import ScanError, read_scan, write_scan
+    from silo_agent.scan import MANIFEST, ScanError, read_scan, write_scan
 
     config = load_config(args.config)
-    if args.scan is not None:
-        try:
-            scan = read_scan(args.scan)
-        except ScanError as exc:
-            return _fail(str(exc), EX_DATAERR)
+    if args.captures is not None and args.scan:
+        return _fail("--captures goes with --capture (give --scan once per scan instead)", 2)
+    captures = 1 if args.captures is None else args.captures
+    if captures < 1:
+        return _fail(f"--captures {captures}: must be at least 1", 2)
+    if args.scan:
+        scans, names = [], []
+        for directory in args.scan:
+            try:
+                scans.append(read_scan(directory))
+            except ScanError as exc:
+                return _fail(str(exc), EX_DATAERR)
+            names.append(str(Path(directory) / MANIFEST))
+        source = ", ".join(str(d) for d in args.scan)
     else:
         from silo_agent.capture import capture_all
 
-        started = datetime.now(UTC)
-        capture = capture_all(config)
-        for failure in capture.failures:
-            print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
-        if capture.failures or not capture.clouds:
-            return _fail("calibration needs every camera; "
-                         f"{len(capture.failures)} failed, no calibration done", 1)
-        scan = _new_scan(config, capture.clouds, capture.failures, started)
-        try:  # keep the calibration scan for audit, like any scan
-            directory = write_scan(scan, config.audit.directory / f"{scan.scan_id}-calibration")
-            print(f"calibration scan written to {directory}", file=sys.stderr)
-        except (ScanError, OSError) as exc:
-            print(f"silo-agent: warning: calibration scan not kept: {exc}", file=sys.stderr)
+        scans, names = [], []
+        for number in range(captures):  # one after another; the rig does not move
+            started = datetime.now(UTC)
+            capture = capture_all(config, number)
+            for failure in capture.failures:
+                print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
+            if capture.failures or not capture.clouds:
+                return _fail("calibration needs every camera; "
+                             f"{len(capture.failures)} failed, no calibration done", 1)
+            scan = _new_scan(config, capture.clouds, capture.failures, started)
+            suffix = "" if captures == 1 else f"-{number + 1}of{captures}"
+            try:  # keep the calibration scan for audit, like any scan
+                directory = write_scan(scan, config.audit.directory
+                                       / f"{scan.scan_id}-calibration{suffix}")
+                print(f"calibration scan written to {directory}", file=sys.stderr)
+            except (ScanError, OSError) as exc:
+                print(f"silo-agent: warning: calibration scan not kept: {exc}", file=sys.stderr)
+            scans.append(scan)
+            names.append(f"capture {number + 1} of {captures}")
+        source = "capture"
+    try:
+        scan = pool_scans(scans, names)
+    except ScanMismatch as exc:
+        return _fail(str(exc), EX_DATAERR)
     try:
         start = start_poses(config, scan)
         result = calibrate(scan, config.calibration, floor=args.floor,
                            site=site_from_config(config), start=start,
                            grid_step=config.reconstruction.grid_step_m)
     except CalibrationError as exc:
-        return _fail(f"{args.scan or 'capture'}: {exc}",
-                     EX_DATAERR if isinstance(exc, SerialMismatch) else 1)
+        return _fail(f"{source}: {exc}", EX_DATAERR if isinstance(exc, SerialMismatch) else 1)
     backup = None
     if args.write:
         try:
@@ -530,11 +551,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=_seconds, default=5.0, metavar="S", help="default 5")
     p.set_defaults(handler=cmd_record)
 
-    p = sub.add_parser("calibrate", help="level and register the cameras from one scan")
+    p = sub.add_parser("calibrate", help="level and register the cameras from calibration scans")
     p.add_argument("--config", type=Path, required=True, metavar="FILE")
     source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--scan", type=Path, metavar="DIR", help="a silo-scan/1 calibration scan")
-    source.add_argument("--capture", action="store_true", help="capture one with every camera")
+    source.add_argument("--scan", type=Path, metavar="DIR", action="append",
+                        help="a silo-scan/1 calibration scan; repeat it to pool several scans "
+                             "taken one after another (their noise averages)")
+    source.add_argument("--capture", action="store_true", help="capture with every camera")
+    p.add_argument("--captures", type=int, metavar="N",
+                   help="with --capture: take N captures in a row and pool them (default 1)")
     p.add_argument("--floor", action="store_true",
                    help="the floor z = floor_z is visible around the grain: level on it")
     p.add_argument("--write", action="store_true",

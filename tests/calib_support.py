@@ -3,6 +3,7 @@ extrinsic by a known amount, rendered by the simulator (no mocks)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -40,3 +41,23 @@ def render(views: list[str], seed: int, true_poses: dict[str, np.ndarray] | None
         cameras.append(r.cloud(sim_view, seed))
     return Scan(scan_id=f"calib-{seed}", captured_at="2026-11-22T10:00:00Z", silo_id="sim",
                 site=r.scene.site, cameras=cameras, reconstruction={"grid_step_m": 0.02})
+
+
+def render_repeats(views: list[str], seed: int, count: int,
+                   true_poses: dict[str, np.ndarray] | None = None,
+                   scene: str = "cone") -> list[Scan]:
+    """`count` scans of the same cameras taken one after another: the same (possibly wrong)
+    poses and units, independent sensor noise in each (the simulator's successive frames)."""
+    r = rig(scene)
+    per_view = []
+    for view in views:
+        nominal = view_pose(r.scene, view)
+        true = (true_poses or {}).get(view, nominal)
+        sim_view = SimView(view, serial_for(view), nominal, true,
+                           d455_intrinsics(focal_for(seed, view)))
+        template = r.cloud(sim_view, seed)
+        frames = r.frames(sim_view, seed, count)
+        per_view.append([replace(template, points=f.points()[0]) for f in frames])
+    return [Scan(scan_id=f"calib-{seed}-{k}", captured_at="2026-11-22T10:00:00Z",
+                 silo_id="sim", site=r.scene.site, cameras=[clouds[k] for clouds in per_view],
+                 reconstruction={"grid_step_m": 0.02}) for k in range(count)]
