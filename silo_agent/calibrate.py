@@ -38,7 +38,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from silo_agent.config import CalibrationConfig, Config, ConfigError, parse_config
+from silo_agent.config import (
+    CalibrationConfig,
+    Config,
+    ConfigError,
+    SpacingConfig,
+    parse_config,
+)
 from silo_agent.geometry import euler_from_rotation, gravity_angle_deg
 from silo_agent.reconstruct.grid import Grid, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
@@ -210,6 +216,25 @@ class PairRegistration:
                 "used": self.used, "note": self.note}
 
 
+@dataclass(frozen=True)
+class SpacingCheck:
+    """A measured camera spacing (`[[calibration.spacing]]`) against the distance between the
+    two cameras' origins (extrinsic translations) before and after calibration."""
+
+    a: str
+    b: str
+    measured_m: float
+    sigma_m: float
+    before_m: float
+    after_m: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"a": self.a, "b": self.b, "measured_m": self.measured_m, "sigma_m": self.sigma_m,
+                "before_m": self.before_m, "after_m": self.after_m,
+                "error_before_m": self.before_m - self.measured_m,
+                "error_after_m": self.after_m - self.measured_m}  # fmt: skip
+
+
 @dataclass
 class Calibration:
     cameras: list[CameraCalibration]
@@ -217,6 +242,7 @@ class Calibration:
     residual_before: dict[str, PairResidual]
     residual_after: dict[str, PairResidual]
     notes: list[str] = field(default_factory=list)
+    spacings: list[SpacingCheck] = field(default_factory=list)
 
     def extrinsics(self) -> dict[str, np.ndarray]:
         return {c.serial: c.after for c in self.cameras}
@@ -230,6 +256,7 @@ class Calibration:
                 k: {"before": _median(self.residual_before, k),
                     "after": _median(self.residual_after, k)} for k in keys
             },
+            "spacing": [s.to_json() for s in self.spacings],
             "notes": self.notes,
         }  # fmt: skip
 
@@ -253,6 +280,13 @@ class Calibration:
             state = "used" if p.used else "not used"
             lines.append(f"ICP {p.a}|{p.b}: fitness {p.fitness:.2f}, rmse "
                          f"{p.rmse_m * 1000:.1f} mm, {state}{': ' + p.note if p.note else ''}")
+        if self.spacings:
+            lines.append("spacing                 measured (±sigma) | before -> after (error; mm)")
+        for sp in self.spacings:
+            lines.append(
+                f"{sp.a + '|' + sp.b:<23} {sp.measured_m * 1000:8.1f} (±{sp.sigma_m * 1000:.1f}) | "
+                f"{sp.before_m * 1000:8.1f} ({(sp.before_m - sp.measured_m) * 1000:+.1f}) -> "
+                f"{sp.after_m * 1000:8.1f} ({(sp.after_m - sp.measured_m) * 1000:+.1f})")
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -420,6 +454,7 @@ def rotation_between_axis(axis: np.ndarray, angle: float) -> np.ndarray:
 def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], site: Site,
              settings: CalibrationConfig, prior_deg: float, prior_m: float,
              leveled: frozenset[str] = frozenset(),
+             spacings: Sequence[SpacingConfig] = (),
              ) -> tuple[dict[str, np.ndarray], list[PairRegistration]]:  # fmt: skip
     """Relative registration of all cameras at once: joint point-to-plane ICP over every
     overlapping pair (each pair's correspondences, both ways), a pose graph solved as one
@@ -431,10 +466,23 @@ def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], si
     it; with the prior, directions the data cannot see stay where the configuration put them.
     Cameras in `leveled` (already on the floor) keep their pitch, roll and height: only their
     yaw and plan position are solved for, from the surfaces that are not level.
+
+    `spacings` (measured camera-to-camera distances) add one residual each,
+    (|c_a - c_b| - distance_m) / sigma_m between the two cameras' origins, to the same normal
+    equations: it acts on the two centres along their baseline only (not on rotations), so a
+    pair with no usable overlap is moved apart or together, half each when their priors are
+    equal, and a leveled camera's locked height stays. It holds the rig's scale, which scenes
+    without walls do not show.
     Returns silo-frame corrections D per camera (new extrinsic = D @ old) and per-pair stats.
     """
     serials = [c.serial for c in cameras]
     n = len(cameras)
+    index = {s: k for k, s in enumerate(serials)}
+    unknown = sorted({s for sp in spacings for s in (sp.a, sp.b) if s not in index})
+    if unknown:
+        raise CalibrationError(f"calibration.spacing names cameras not in the scan: "
+                               f"{', '.join(unknown)}")
+    links = [(index[sp.a], index[sp.b], sp.distance_m, sp.sigma_m) for sp in spacings]
     locked = len(leveled) == n
     views = [_view(c, poses[c.serial], site, settings, drop_level=locked) for c in cameras]
     current = [np.asarray(poses[s], dtype=float).copy() for s in serials]
@@ -452,7 +500,7 @@ def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], si
         overlap[(i, j)] = max(_accumulate(views, current, i, j, coarse, scratch_h, scratch_g)[0],
                               _accumulate(views, current, j, i, coarse, scratch_h, scratch_g)[0])
     active = [p for p in pair_list if overlap[p] >= settings.min_overlap]
-    for scale in ICP_SCALES if active else ():
+    for scale in ICP_SCALES if active or links else ():
         distance = settings.icp_max_distance_m * scale
         for _ in range(ICP_ITERATIONS):
             h = np.diag(prior).astype(float)
@@ -466,6 +514,8 @@ def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], si
                     stats = _accumulate(views, current, a, b, distance, h, g)
                     if a == i:
                         rmse[(i, j)] = stats[1]
+            for a, b, measured, sigma in links:
+                _add_spacing(current, a, b, measured, sigma, h, g)
             step = np.linalg.solve(h, g)
             for k in range(n):
                 delta = _small_motion(step[6 * k: 6 * k + 3], step[6 * k + 3: 6 * k + 6],
@@ -481,6 +531,28 @@ def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], si
                                       used, note))
     corrections = {s: current[k] @ np.linalg.inv(poses[s]) for k, s in enumerate(serials)}
     return corrections, pairs
+
+
+def _add_spacing(poses: Sequence[np.ndarray], a: int, b: int, measured: float, sigma: float,
+                 h: np.ndarray, g: np.ndarray) -> None:
+    """Add the residual (|c_a - c_b| - measured) / sigma of two camera origins to (h, g).
+
+    d r / d tau_a = u / sigma and d r / d tau_b = -u / sigma, u the unit baseline from b to a;
+    the rotations (about each camera's own centre) do not move the centres."""
+    diff = poses[a][:3, 3] - poses[b][:3, 3]
+    length = float(np.linalg.norm(diff))
+    if length < 1e-9:
+        return  # two cameras configured at one point: no direction to push along
+    u = diff / length
+    w = 1.0 / sigma**2
+    block = w * np.outer(u, u)
+    ta, tb = slice(6 * a + 3, 6 * a + 6), slice(6 * b + 3, 6 * b + 6)
+    h[ta, ta] += block
+    h[tb, tb] += block
+    h[ta, tb] -= block
+    h[tb, ta] -= block
+    g[ta] -= w * (length - measured) * u
+    g[tb] += w * (length - measured) * u
 
 
 def _correction_params(start: np.ndarray, now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -553,6 +625,10 @@ def calibrate(
         raise CalibrationError("the scan has no cameras")
     configured = {c.serial: np.asarray((start or {}).get(c.serial, c.extrinsic), dtype=float)
                   for c in cameras}  # fmt: skip
+    unknown = sorted({s for sp in settings.spacing for s in (sp.a, sp.b) if s not in configured})
+    if unknown:
+        raise CalibrationError(f"calibration.spacing names cameras not in the scan: "
+                               f"{', '.join(unknown)}")
     notes: list[str] = []
     poses = dict(configured)
 
@@ -576,11 +652,14 @@ def calibrate(
     if len(cameras) > 1:
         fixed = frozenset(s for s, how in leveled.items() if how == "floor")
         corrections, pairs = register(cameras, poses, site, settings,
-                                      settings.prior_deg, settings.prior_m, fixed)
+                                      settings.prior_deg, settings.prior_m, fixed,
+                                      settings.spacing)
         linked = {s for p in pairs if p.used for s in (p.a, p.b)}
         for c in cameras:
             if c.serial not in linked:
-                notes.append(f"{c.serial}: no overlap with another camera; not registered")
+                spaced = any(c.serial in (sp.a, sp.b) for sp in settings.spacing)
+                notes.append(f"{c.serial}: no overlap with another camera; not registered"
+                             + (" (only its measured spacing moved it)" if spaced else ""))
         poses = {s: corrections[s] @ poses[s] for s in poses}
 
     # 3. without a floor: the rig levelled by gravity, or kept as configured on average
@@ -644,7 +723,15 @@ def calibrate(
         residual_before=scan_residuals(before_clouds, site, grid_step, settings),
         residual_after=scan_residuals(after_clouds, site, grid_step, settings),
         notes=notes,
+        spacings=[SpacingCheck(sp.a, sp.b, sp.distance_m, sp.sigma_m,
+                               _spacing(configured, sp), _spacing(poses, sp))
+                  for sp in settings.spacing],
     )  # fmt: skip
+
+
+def _spacing(poses: Mapping[str, np.ndarray], spacing: SpacingConfig) -> float:
+    """Distance between the origins (extrinsic translations) of the spacing's two cameras."""
+    return float(np.linalg.norm(poses[spacing.a][:3, 3] - poses[spacing.b][:3, 3]))
 
 
 def _rigid_fit(moved: Sequence[np.ndarray], reference: Sequence[np.ndarray]) -> np.ndarray:

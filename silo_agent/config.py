@@ -19,6 +19,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic_core import PydanticCustomError
 
 from silo_agent.geometry import check_polygon, rigid_transform_problem, transform_from_euler
 
@@ -382,6 +383,30 @@ class AuditConfig(Strict):
     max_age_days: float = Field(default=90, gt=0)
 
 
+SPACING_SIGMA_M = 0.003  # default uncertainty of a measured camera spacing (laser meter)
+
+
+class SpacingConfig(Strict):
+    """A measured distance between two cameras' origins (`[[calibration.spacing]]`).
+
+    The point meant is each camera's origin as its extrinsic places it: the translation of the
+    camera -> silo transform (for a D455, the depth frame's origin, the left imager's optical
+    centre). `calibrate` holds the two to `distance_m` within about `sigma_m`."""
+
+    a: str = Field(min_length=1, description="serial of one camera")
+    b: str = Field(min_length=1, description="serial of the other camera")
+    distance_m: float = Field(gt=0, description="measured distance between the two origins")
+    sigma_m: float = Field(
+        default=SPACING_SIGMA_M, gt=0, description="the measurement's standard uncertainty"
+    )
+
+    @model_validator(mode="after")
+    def _two_cameras(self) -> SpacingConfig:
+        if self.a == self.b:
+            raise ValueError(f"a and b are the same camera ({self.a!r}); a spacing needs two")
+        return self
+
+
 class CalibrationConfig(Strict):
     """Calibration (`silo-agent calibrate`), the per-scan registration check and drift alarm."""
 
@@ -427,6 +452,9 @@ class CalibrationConfig(Strict):
     )
     refine_max_deg: float = Field(default=0.5, gt=0, description="per-scan refinement bound")
     refine_max_m: float = Field(default=0.02, gt=0, description="per-scan refinement bound")
+    spacing: list[SpacingConfig] = Field(
+        default=[], description="measured camera-to-camera distances calibrate holds to"
+    )
 
 
 class Config(Strict):
@@ -448,6 +476,18 @@ class Config(Strict):
         dupes = sorted({s for s in serials if serials.count(s) > 1})
         if dupes:
             raise ValueError(f"camera serials must be unique, repeated: {', '.join(dupes)}")
+        known = set(serials)
+        for k, spacing in enumerate(self.calibration.spacing):
+            for key in ("a", "b"):
+                serial = getattr(spacing, key)
+                if serial not in known:
+                    raise PydanticCustomError(
+                        "config_key",
+                        "unknown camera serial '{serial}', expected the serial of one of the "
+                        "[[cameras]] ({known})",
+                        {"key": f"calibration.spacing.{k}.{key}", "serial": serial,
+                         "known": ", ".join(serials)},
+                    )
         return self
 
 
@@ -456,6 +496,8 @@ def describe_validation_error(exc: ValidationError, source: str) -> str:
     lines = []
     for error in exc.errors():
         path = ".".join(str(p) for p in error["loc"]) or "(top level)"
+        if error["type"] == "config_key":  # a cross-check raised at the top, naming its key
+            path = error["ctx"]["key"]
         message = error["msg"].removeprefix("Value error, ")
         if error["type"] == "extra_forbidden":
             message = "unknown key"
