@@ -19,6 +19,9 @@ For every scene x view set x seed, the simulator renders cameras that really sit
   (`pool_scans`): the seed's perturbed rig (same wrong extrinsics, same units) taken N times
   in a row, independent sensor noise in each (the simulator's successive frames; the first is
   the N = 1 scan), the volume still measured on the first scan against the same 'perfect'.
+- with `--spacing-sigma S`: the same scan calibrated with `--floor` and measured camera
+  spacings (`[[calibration.spacing]]`): the true distance between every two cameras' origins
+  plus Gaussian noise of S (seeded per scene, views and seed), with sigma_m = S.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from silo_agent.calibrate import (
     pool_scans,
     with_extrinsics,
 )
-from silo_agent.config import CalibrationConfig, ReconstructionConfig
+from silo_agent.config import CalibrationConfig, ReconstructionConfig, SpacingConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan
 from silo_agent.sim.layouts import axis_angle, view_pose
@@ -78,6 +81,31 @@ class Run:
     dilation_mm: float  # mean radial error of the cameras' plan positions (+: too far out)
     height_mm: float  # mean height error of the cameras' views at the pile centre
     floor_fit_mm: float  # mean height at the pile centre of the floors fitted on true poses
+    spaced: Spaced | None = None  # after --floor with measured spacings (--spacing-sigma)
+
+
+@dataclass(frozen=True)
+class Spaced:
+    """After `calibrate --floor` given every camera pair's measured spacing."""
+
+    after_pp: float
+    horizontal_pp: float
+    vertical_pp: float
+    dilation_mm: float
+    spacing_error_mm: float  # largest |calibrated - true distance| over the pairs
+    measurement_error_mm: float  # largest |measured - true distance| (the injected noise)
+    residual_after_m: float
+    seconds: float
+
+
+def measured_spacings(truth: dict, sigma: float, rng: np.random.Generator
+                      ) -> list[SpacingConfig]:  # fmt: skip
+    """Every camera pair's true origin-to-origin distance plus N(0, sigma) noise."""
+    serials = sorted(truth)
+    return [SpacingConfig(a=a, b=b, sigma_m=sigma,
+                          distance_m=float(np.linalg.norm(truth[a][:3, 3] - truth[b][:3, 3])
+                                           + rng.normal(0.0, sigma)))
+            for k, a in enumerate(serials) for b in serials[k + 1:]]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -185,7 +213,8 @@ def pooled_run(rig: SimRig, views: str, seed: int, scans: list[Scan], perfect: f
 
 
 def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
-        pool: tuple[int, ...] = ()) -> tuple[Run, list[Pooled]]:  # fmt: skip
+        pool: tuple[int, ...] = (), spacing_sigma: float | None = None,
+        ) -> tuple[Run, list[Pooled]]:  # fmt: skip
     scene = rig.scene
     scans = repeated_scans(rig, views, seed, max((1, *pool)))
     scan = scans[0]
@@ -212,6 +241,24 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
               _max_residual(gravity.residual_after), seconds, pp(volume(vertical)),
               pp(volume(horizontal)), dilation, height,
               floor_fit_height(scan, truth, pivot))  # fmt: skip
+    if spacing_sigma is not None:
+        rng = np.random.default_rng([seed, len(VIEWS[views]), sum(map(ord, scene.name))])
+        spacings = measured_spacings(truth, spacing_sigma, rng)
+        started = time.perf_counter()
+        spaced = calibrate(scan, CalibrationConfig(spacing=spacings), floor=True)
+        spaced_seconds = time.perf_counter() - started
+        sv, sh, sdil, _ = split_errors(spaced.extrinsics(), truth, pivot)
+
+        def true_m(sp: SpacingConfig) -> float:
+            return float(np.linalg.norm(truth[sp.a][:3, 3] - truth[sp.b][:3, 3]))
+
+        after = spaced.extrinsics()
+        run = replace(run, spaced=Spaced(
+            pp(volume(after)), pp(volume(sh)), pp(volume(sv)), sdil,
+            max(1000 * abs(np.linalg.norm(after[sp.a][:3, 3] - after[sp.b][:3, 3]) - true_m(sp))
+                for sp in spacings),
+            max(1000 * abs(sp.distance_m - true_m(sp)) for sp in spacings),
+            _max_residual(spaced.residual_after), spaced_seconds))
     pooled = [pooled_run(rig, views, seed, scans[:n], perfect, settings)
               for n in pool if n > 1]
     return run, pooled
@@ -441,6 +488,72 @@ def report_pooled(runs: list[Run], pooled: list[Pooled]) -> list[str]:
     return [*lines, ""]
 
 
+def report_spaced(runs: list[Run], sigma: float) -> list[str]:
+    """After `--floor` without and with measured camera spacings, side by side."""
+    lines = ["## Measured camera spacings", "",
+             f"`calibrate --floor` on the same scan, without and with `[[calibration.spacing]]`: "
+             f"every camera pair's true origin-to-origin distance plus Gaussian noise of "
+             f"{sigma * 1000:g} mm (seeded), `sigma_m = {sigma:g}`. Volume against the same "
+             "'perfect'. Dilation: mean radial error of the cameras' plan positions (as above). "
+             "Spacing error: largest |calibrated - true distance| over the pairs; measurement "
+             "error: largest |measured - true| (the noise given).", "",
+             "| scene | views | after --floor, without / with spacings: mean abs (pp) "
+             "| worst (pp) | horizontal part, without / with: mean abs (pp) "
+             "| rms dilation, without / with (mm) | worst spacing error after (mm) "
+             "| worst measurement error (mm) | calibrate time, without / with (s) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+
+    def rms(values: list[float]) -> float:
+        return float(np.sqrt(np.mean(np.square(values))))
+
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.scene, run.views), []).append(run)
+    for (scene, views), rows in groups.items():
+        sp = [r.spaced for r in rows]
+        lines.append(
+            f"| {scene} | {views} | {np.mean([abs(r.after_pp) for r in rows]):.2f} / "
+            f"{np.mean([abs(s.after_pp) for s in sp]):.2f} "
+            f"| {max(abs(r.after_pp) for r in rows):.2f} / {max(abs(s.after_pp) for s in sp):.2f} "
+            f"| {np.mean([abs(r.horizontal_pp) for r in rows]):.2f} / "
+            f"{np.mean([abs(s.horizontal_pp) for s in sp]):.2f} "
+            f"| {rms([r.dilation_mm for r in rows]):.1f} / {rms([s.dilation_mm for s in sp]):.1f} "
+            f"| {max(s.spacing_error_mm for s in sp):.1f} "
+            f"| {max(s.measurement_error_mm for s in sp):.1f} "
+            f"| {np.mean([r.seconds for r in rows]):.1f} / "
+            f"{np.mean([s.seconds for s in sp]):.1f} |")
+    lines += ["", "### Targets, without and with measured spacings", "",
+              "| views | spacings | within 0.3 pp of perfect | mean abs (pp) | worst (pp) "
+              "| mean abs vertical part (pp) | mean abs horizontal part (pp) "
+              "| rms dilation (mm) | worst residual after (mm) |",
+              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for views in VIEWS:
+        rows = [r for r in runs if r.views == views]
+        for label, got in (("without", [(r.after_pp, r.vertical_pp, r.horizontal_pp,
+                                         r.dilation_mm, r.residual_after_m) for r in rows]),
+                           ("with", [(s.after_pp, s.vertical_pp, s.horizontal_pp, s.dilation_mm,
+                                      s.residual_after_m) for s in (r.spaced for r in rows)])):
+            after = np.abs([g[0] for g in got])
+            lines.append(
+                f"| {views} | {label} | {int((after <= TARGET_PP).sum())} of {len(got)} "
+                f"| {after.mean():.2f} | {after.max():.2f} "
+                f"| {np.mean([abs(g[1]) for g in got]):.2f} "
+                f"| {np.mean([abs(g[2]) for g in got]):.2f} "
+                f"| {rms([g[3] for g in got]):.1f} "
+                f"| {max(g[4] for g in got) * 1000:.1f} |")  # fmt: skip
+    lines += ["", "### Every scan, without / with measured spacings", "",
+              "| scene | views | seed | after --floor (pp) | horizontal part only (pp) "
+              "| dilation (mm) | spacing error after, worst pair (mm) |",
+              "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in runs:
+        s = r.spaced
+        lines.append(f"| {r.scene} | {r.views} | {r.seed} | {r.after_pp:+.2f} / {s.after_pp:+.2f} "
+                     f"| {r.horizontal_pp:+.2f} / {s.horizontal_pp:+.2f} "
+                     f"| {r.dilation_mm:+.1f} / {s.dilation_mm:+.1f} "
+                     f"| {s.spacing_error_mm:.1f} |")
+    return [*lines, ""]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default="cone,piles,ridge")
@@ -449,6 +562,9 @@ def main() -> None:
     parser.add_argument("--pool", default="1", metavar="N,N",
                         help="numbers of calibration scans pooled per seed (1: the plain runs; "
                              "e.g. 1,4 adds `calibrate --floor` on 4 scans of the same rig)")
+    parser.add_argument("--spacing-sigma", type=float, default=None, metavar="M",
+                        help="also calibrate with every camera pair's measured spacing: the "
+                             "true distance plus Gaussian noise of M metres (seeded)")
     parser.add_argument("--out", type=Path, default=Path("bench/results/calibration.md"))
     args = parser.parse_args()
     pool = tuple(sorted({int(n) for n in args.pool.split(",")} - {1}))
@@ -460,7 +576,7 @@ def main() -> None:
         rig = SimRig(make_scene(name))
         for views in VIEWS:
             for seed in range(args.seeds):
-                r, more = one(rig, views, seed, settings, pool)
+                r, more = one(rig, views, seed, settings, pool, args.spacing_sigma)
                 runs.append(r)
                 pooled += more
                 print(f"{name} {views} seed {seed}: before {r.before_pp:+.2f} pp, after "
@@ -468,7 +584,9 @@ def main() -> None:
                       f"{r.residual_before_m * 1000:.1f} -> {r.residual_after_m * 1000:.1f} mm, "
                       f"{r.seconds:.1f} s"
                       + "".join(f"; {p.n} scans pooled: after {p.after_pp:+.2f} pp, "
-                                f"{p.seconds:.1f} s" for p in more), flush=True)
+                                f"{p.seconds:.1f} s" for p in more)
+                      + (f"; with spacings: after {r.spaced.after_pp:+.2f} pp, "
+                         f"{r.spaced.seconds:.1f} s" if r.spaced else ""), flush=True)
     cone = SimRig(make_scene("cone"))
     lines = header("Calibration benchmark",
                    f"injected error per camera: {ERROR[0]} deg about a random axis and "
@@ -476,6 +594,8 @@ def main() -> None:
     lines += report(runs)
     if pool:
         lines += report_pooled(runs, pooled)
+    if args.spacing_sigma is not None:
+        lines += report_spaced(runs, args.spacing_sigma)
     lines += drift(cone, settings, args.repeats) + residual_cost(cone, settings)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))
