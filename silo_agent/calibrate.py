@@ -13,7 +13,10 @@ that their noise averages) fixes that:
    squares) sets its pitch, roll and height; otherwise the cameras' accelerometer gravity
    vectors set the rig's tilt and the configured (mounted) heights its height.
 3. The rig's yaw and plan position, which a floor and gravity cannot see, stay where the
-   configured extrinsics put them on average (2-D Procrustes on the camera poses).
+   configured extrinsics put them on average (2-D Procrustes on the camera poses). Its scale,
+   which a scan without walls hardly shows, comes from measured camera spacings
+   (`[[calibration.spacing]]`) when the config has them: one more residual per spacing in
+   the joint registration.
 4. A camera corrected by more than `max_correction_deg` / `max_correction_m` is refused with the
    reason: a calibration that far off is a wrong scan or a wrong config, not a small error.
 
