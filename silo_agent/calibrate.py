@@ -480,11 +480,7 @@ def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], si
     """
     serials = [c.serial for c in cameras]
     n = len(cameras)
-    index = {s: k for k, s in enumerate(serials)}
-    unknown = sorted({s for sp in spacings for s in (sp.a, sp.b) if s not in index})
-    if unknown:
-        raise CalibrationError(f"calibration.spacing names cameras not in the scan: "
-                               f"{', '.join(unknown)}")
+    index = {s: k for k, s in enumerate(serials)}  # calibrate() checked the spacings' serials
     links = [(index[sp.a], index[sp.b], sp.distance_m, sp.sigma_m) for sp in spacings]
     locked = len(leveled) == n
     views = [_view(c, poses[c.serial], site, settings, drop_level=locked) for c in cameras]

@@ -28,17 +28,23 @@ def knocked(nominal: np.ndarray, degrees: float, axis_in_camera: tuple[float, fl
     return true
 
 
+def _sim_views(r: SimRig, views: list[str], seed: int,
+               true_poses: dict[str, np.ndarray] | None) -> list[SimView]:  # fmt: skip
+    """The simulator's cameras at their nominal extrinsics, really sitting at `true_poses`."""
+    out = []
+    for view in views:
+        nominal = view_pose(r.scene, view)
+        true = (true_poses or {}).get(view, nominal)
+        out.append(SimView(view, serial_for(view), nominal, true,
+                           d455_intrinsics(focal_for(seed, view))))
+    return out
+
+
 def render(views: list[str], seed: int, true_poses: dict[str, np.ndarray] | None = None,
            scene: str = "cone") -> Scan:
     """A scan of `views` whose cameras really sit at `true_poses` (default: their nominal)."""
     r = rig(scene)
-    cameras = []
-    for view in views:
-        nominal = view_pose(r.scene, view)
-        true = (true_poses or {}).get(view, nominal)
-        sim_view = SimView(view, serial_for(view), nominal, true,
-                           d455_intrinsics(focal_for(seed, view)))
-        cameras.append(r.cloud(sim_view, seed))
+    cameras = [r.cloud(v, seed) for v in _sim_views(r, views, seed, true_poses)]
     return Scan(scan_id=f"calib-{seed}", captured_at="2026-11-22T10:00:00Z", silo_id="sim",
                 site=r.scene.site, cameras=cameras, reconstruction={"grid_step_m": 0.02})
 
@@ -50,11 +56,7 @@ def render_repeats(views: list[str], seed: int, count: int,
     poses and units, independent sensor noise in each (the simulator's successive frames)."""
     r = rig(scene)
     per_view = []
-    for view in views:
-        nominal = view_pose(r.scene, view)
-        true = (true_poses or {}).get(view, nominal)
-        sim_view = SimView(view, serial_for(view), nominal, true,
-                           d455_intrinsics(focal_for(seed, view)))
+    for sim_view in _sim_views(r, views, seed, true_poses):
         template = r.cloud(sim_view, seed)
         frames = r.frames(sim_view, seed, count)
         per_view.append([replace(template, points=f.points()[0]) for f in frames])
