@@ -55,6 +55,8 @@ from silo_agent.scan import CameraCloud, Scan, Site
 
 UP = np.array([0.0, 0.0, 1.0])
 FLOOR_RANSAC_DISTANCE_M = 0.02  # inlier distance of the RANSAC floor plane
+FLOOR_RANSAC_TRIALS = 1000  # candidate planes, each through 3 random points
+FLOOR_RANSAC_SCORED = 2000  # points on which every candidate is scored (a fixed random subset)
 FLOOR_REFINE_DISTANCE_M = 0.03  # points this close to the RANSAC plane refine it (least squares)
 FLOOR_MIN_POINTS = 500  # fewer floor inliers: this camera does not see the floor
 FLOOR_CELL_M = 0.10  # cells in which a pile's foot is told from the floor
@@ -350,16 +352,36 @@ def point_sigma(depth: np.ndarray) -> np.ndarray:
     return ICP_SIGMA_M + ICP_SIGMA_PER_M2 * depth * depth
 
 
+def ransac_plane(points: np.ndarray, distance: float) -> np.ndarray | None:
+    """The plane (unit normal pointing up, offset) that most of `points` lie within `distance`
+    of; None when they all lie on one line. Seeded: the same points give the same plane, so one
+    calibration scan gives one answer (open3d's `segment_plane` samples on several threads and
+    did not: the floor height varied by up to 0.08 mm between two calls)."""
+    rng = np.random.default_rng(0)
+    trios = points[rng.integers(0, len(points), size=(FLOOR_RANSAC_TRIALS, 3))]
+    normals = np.cross(trios[:, 1] - trios[:, 0], trios[:, 2] - trios[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    usable = length > 0
+    if not usable.any():
+        return None
+    normals = normals[usable] / length[usable, None]
+    normals *= np.where(normals[:, 2] < 0, -1.0, 1.0)[:, None]
+    offsets = -np.einsum("ij,ij->i", normals, trios[usable, 0])
+    scored = points[rng.choice(len(points), min(len(points), FLOOR_RANSAC_SCORED), replace=False)]
+    support = (np.abs(scored @ normals.T + offsets) <= distance).sum(axis=0)
+    best = int(np.argmax(support))
+    return np.append(normals[best], offsets[best])
+
+
 def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
                  settings: CalibrationConfig) -> tuple[np.ndarray, np.ndarray]:
     """The camera's points (silo frame) that are floor, and their expected noise (m).
 
-    A RANSAC plane (open3d) among the points near `floor_z` within `floor_max_range_m` of the
-    camera; then only points near that plane and away from anything standing on it. The foot
-    of a pile lies within a few cm of the floor: left in, it lifted the plane by 3 mm and
-    tilted it 0.2 deg towards the pile (measured on the simulator's cone).
+    A RANSAC plane among the points near `floor_z` within `floor_max_range_m` of the camera;
+    then only points near that plane and away from anything standing on it. The foot of a pile
+    lies within a few cm of the floor: left in, it lifted the plane by 3 mm and tilted it 0.2 deg
+    towards the pile (measured on the simulator's cone).
     """
-    import open3d as o3d
     from scipy import ndimage
 
     cam = camera.points.astype(np.float64)
@@ -368,15 +390,12 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     band = np.abs(pts[:, 2] - floor_z) <= settings.floor_band_m
     if band.sum() < FLOOR_MIN_POINTS:
         return np.empty((0, 3)), np.empty(0)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[band]))
-    o3d.utility.random.seed(0)
-    model, inliers = cloud.segment_plane(FLOOR_RANSAC_DISTANCE_M, 3, 1000)
-    if len(inliers) < FLOOR_MIN_POINTS:
+    plane = ransac_plane(pts[band], FLOOR_RANSAC_DISTANCE_M)
+    if plane is None:
         return np.empty((0, 3)), np.empty(0)
-    normal = np.asarray(model[:3])
-    scale = np.linalg.norm(normal)
-    sign = 1.0 if normal[2] >= 0 else -1.0
-    height = sign * (pts @ normal + model[3]) / scale  # above the RANSAC plane
+    height = pts @ plane[:3] + plane[3]  # above the RANSAC plane
+    if np.count_nonzero(np.abs(height[band]) <= FLOOR_RANSAC_DISTANCE_M) < FLOOR_MIN_POINTS:
+        return np.empty((0, 3)), np.empty(0)
     # cells (FLOOR_CELL_M) whose points stand above the floor on average, and their margin
     low = pts[:, :2].min(axis=0)
     ij = np.floor((pts[:, :2] - low) / FLOOR_CELL_M).astype(np.int64)
