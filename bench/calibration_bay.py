@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from benchlib import header
-from calibration import ERROR, TARGET_PP, VIEWS, _max_residual, split_errors
+from calibration import ERROR, TARGET_PP, VIEWS, _max_residual, floor_fit_height, split_errors
 
 from silo_agent.calibrate import Calibration, calibrate, scan_residuals, with_extrinsics
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
@@ -35,7 +35,11 @@ from silo_agent.reconstruct import reconstruct
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
 
-WORKFLOWS = {"empty-bay": "calibrated on the empty bay", "pile": "calibrated on the bay-cone scan"}
+# workflow: (calibration scan, the calibration's settings); "floor only": the same leveling
+# with no camera pair registered (min_overlap = 1), to show what the registration adds
+WORKFLOWS = {"empty-bay": ("empty", CalibrationConfig()),
+             "empty-bay, floor only": ("empty", CalibrationConfig(min_overlap=1.0)),
+             "pile": ("bay-cone", CalibrationConfig())}
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,7 @@ class Outcome:
     horizontal_pp: float  # ... only the horizontal part
     dilation_mm: float
     height_mm: float
+    floor_fit_mm: float  # mean height at the pile centre of the floors fitted on true poses
     residual_before_m: float  # on the calibration scan
     residual_after_m: float  # on the calibration scan
     residual_cone_m: float  # on the bay-cone scan, with the calibrated extrinsics
@@ -89,9 +94,9 @@ def one(empty: SimRig, cone: SimRig, views: str, seed: int,
         return 100.0 * (v - perfect) / exact
 
     pivot = np.array([cone.scene.target[0], cone.scene.target[1], cone.scene.site.floor_z])
-    config = CalibrationConfig()
     outcomes = {}
-    for workflow, scan in (("empty-bay", empty_scan), ("pile", cone_scan)):
+    for workflow, (name, config) in WORKFLOWS.items():
+        scan = empty_scan if name == "empty" else cone_scan
         started = time.perf_counter()
         result = calibrate(scan, config, floor=True)
         seconds = time.perf_counter() - started
@@ -101,34 +106,45 @@ def one(empty: SimRig, cone: SimRig, views: str, seed: int,
                                  0.02, config)
         outcomes[workflow] = Outcome(
             pp(volume(poses)), pp(volume(vertical)), pp(volume(horizontal)), dilation, height,
-            _max_residual(result.residual_before), _max_residual(result.residual_after),
-            _max_residual(on_cone), _pairs(result), seconds)
-    before = scan_residuals(cone_scan.cameras, cone_scan.site, 0.02, config)
+            floor_fit_height(scan, truth, pivot), _max_residual(result.residual_before),
+            _max_residual(result.residual_after), _max_residual(on_cone), _pairs(result), seconds)
+    before = scan_residuals(cone_scan.cameras, cone_scan.site, 0.02, CalibrationConfig())
     return Run(views, seed, 100.0 * (perfect / exact - 1), pp(volume(None)),
                _max_residual(before), outcomes)
+
+
+def rms(values: list[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
 
 
 def report(runs: list[Run]) -> list[str]:
     lines = ["## Volume after calibration, by workflow", "",
              "Volume of the bay-cone scan in percentage points of its exact volume, against the "
              "same scan reconstructed with the true extrinsics ('perfect'). *empty-bay*: "
-             "`calibrate --floor` on a scan of the empty bay by the same rig; *pile*: on the "
+             "`calibrate --floor` on a scan of the empty bay by the same rig; *empty-bay, floor "
+             "only*: the same with no camera pair registered (`min_overlap = 1`: leveling on "
+             "the floor, the rig's yaw and plan position kept as configured); *pile*: on the "
              "bay-cone scan itself. Horizontal / vertical part: the scan reconstructed with "
              "only that part of each camera's remaining pose error kept (as in "
              "calibration.md). Dilation: mean radial error of the cameras' plan positions "
-             "(+: too far out).", "",
+             "(+: too far out). Height: mean height error of the cameras' views at the pile's "
+             "centre; floor fit on true poses: the same for the floor planes `calibrate` fits "
+             "to each camera's points of the calibration scan placed with its true extrinsic "
+             "(the leveling's own error).", "",
              f"| views | workflow | within {TARGET_PP} pp of perfect | mean abs (pp) "
              "| worst (pp) | mean abs vertical part (pp) | mean abs horizontal part (pp) "
-             "| rms dilation (mm) | worst residual, calibration scan after (mm) "
+             "| rms dilation (mm) | mean / rms height (mm) | mean / rms floor fit on true poses "
+             "(mm) | worst residual, calibration scan after (mm) "
              "| worst residual, bay-cone scan after (mm) | calibrate time (s) |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+             "| ---: |"]
     for views in VIEWS:
         rows = [r for r in runs if r.views == views]
         if not rows:
             continue
         before = np.abs([r.before_pp for r in rows])
         lines.append(f"| {views} | before calibration | {int((before <= TARGET_PP).sum())} of "
-                     f"{len(rows)} | {before.mean():.2f} | {before.max():.2f} | | | | | "
+                     f"{len(rows)} | {before.mean():.2f} | {before.max():.2f} | | | | | | | "
                      f"{max(r.residual_cone_before_m for r in rows) * 1000:.1f} | |")
         for workflow in WORKFLOWS:
             got = [r.outcomes[workflow] for r in rows]
@@ -138,7 +154,11 @@ def report(runs: list[Run]) -> list[str]:
                 f"| {after.mean():.2f} | {after.max():.2f} "
                 f"| {np.mean([abs(o.vertical_pp) for o in got]):.2f} "
                 f"| {np.mean([abs(o.horizontal_pp) for o in got]):.2f} "
-                f"| {np.sqrt(np.mean([o.dilation_mm**2 for o in got])):.1f} "
+                f"| {rms([o.dilation_mm for o in got]):.1f} "
+                f"| {np.mean([o.height_mm for o in got]):+.2f} / "
+                f"{rms([o.height_mm for o in got]):.2f} "
+                f"| {np.mean([o.floor_fit_mm for o in got]):+.2f} / "
+                f"{rms([o.floor_fit_mm for o in got]):.2f} "
                 f"| {max(o.residual_after_m for o in got) * 1000:.1f} "
                 f"| {max(o.residual_cone_m for o in got) * 1000:.1f} "
                 f"| {np.mean([o.seconds for o in got]):.1f} |")  # fmt: skip
