@@ -8,7 +8,9 @@ import pytest
 from scipy.integrate import quad
 
 from silo_agent.sim.grains import GRAINS
+from silo_agent.sim.layouts import VIEWS, view_pose
 from silo_agent.sim.scenes import cone_height, make_scene, numeric_volume, square
+from silo_agent.sim.simulate import simulate
 
 STEP = 0.003  # midpoint integration step for the cross-checks (the scenes use 2 mm)
 
@@ -123,6 +125,42 @@ def test_piles_truth_splits_the_total_between_the_piles() -> None:
         assert pile.apex == pytest.approx((cx, cy, slope * r))
     truth = scene.truth()
     assert [p["volume_m3"] for p in truth["piles"]] == [p.volume_m3 for p in scene.piles]
+
+
+@pytest.mark.parametrize("grain_name", ["wheat", "soybeans"])
+def test_bay_cone_is_the_papers_pile_in_the_empty_bay(grain_name: str) -> None:
+    empty, scene = make_scene("empty", grain_name), make_scene("bay-cone", grain_name)
+    p = scene.params
+    assert p["height"] == pytest.approx(p["radius"] * GRAINS[grain_name].slope)
+    formula = np.pi * p["radius"] ** 2 * p["height"] / 3
+    assert scene.volume_m3 == pytest.approx(formula, rel=1e-12) and formula == pytest.approx(1.68)
+    region = scene.site.region
+    assert np.array_equal(region, empty.site.region)
+    assert numeric_volume(scene.height, region, 0.0, 0.002) == pytest.approx(formula, rel=1e-6)
+    assert empty.volume_m3 == 0.0 and numeric_volume(empty.height, region, 0.0, 0.002) == 0.0
+    # floor around the pile inside the region, walls (up to above the cameras) outside it
+    half = p["region_half"]
+    assert p["radius"] < half - 1.0 and np.abs(region).max() == half < 3.0
+    wall = np.array([3.05, 0.0, -3.05]), np.array([0.0, 3.05, 1.0])
+    assert np.all(scene.height(*wall) == p["wall_top"]) and p["wall_top"] > scene.wall_camera_z
+    # one rig for both: same cameras, same site
+    for view in VIEWS:
+        assert np.array_equal(view_pose(empty, view), view_pose(scene, view))
+    assert (empty.site.floor_z, empty.site.ceiling_z) == (scene.site.floor_z, scene.site.ceiling_z)
+
+
+def test_every_wall_camera_sees_the_bays_floor_walls_and_pile() -> None:
+    scene = make_scene("bay-cone")
+    scan = simulate(scene, list(VIEWS), seed=0)
+    radius = scene.params["radius"]
+    for camera in scan.cameras:
+        p = camera.points_in_silo()
+        r = np.hypot(p[:, 0], p[:, 1])
+        floor = (np.abs(p[:, 2]) < 0.05) & (r > radius + 0.1) & (np.abs(p[:, :2]).max(axis=1) < 2.9)
+        pile = (p[:, 2] > 0.1) & (r < radius - 0.1)
+        walls = [(p[:, axis] * sign > 3.0) & (p[:, 2] > 0.3) for axis in (0, 1) for sign in (1, -1)]
+        assert floor.sum() > 50_000 and pile.sum() > 20_000, camera.serial
+        assert sum(w.sum() > 5_000 for w in walls) >= 2, camera.serial
 
 
 def test_unknown_scene_and_grain_are_named() -> None:

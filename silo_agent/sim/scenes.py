@@ -20,7 +20,7 @@ from silo_agent.sim.grains import Grain, grain
 
 HeightField = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
-SCENES = ("cone", "piles", "ridge", "crater", "full", "flat")
+SCENES = ("cone", "piles", "ridge", "crater", "full", "flat", "empty", "bay-cone")
 PAPER_PILE_M3 = 1.68  # the paper's reference pile
 
 
@@ -291,9 +291,56 @@ def full_scene(g: Grain) -> Scene:
     )
 
 
+# An empty bay and a pile in it, for calibrating a walled installation: the floor and the walls
+# in view of every wall camera. Both scenes place the cameras identically (same target, same
+# wall layout), so a rig rendered in one is the same rig in the other. The region stops
+# BAY_MARGIN_M short of the walls: a wall 6 m from a camera is seen with ~7 cm of depth noise
+# along the ray, which scatters wall points up to ~0.2 m into the bay, and the fill spreads
+# them; with the region 0.1 m inside the walls, the empty bay seen by A1 and A5 with their
+# true poses read 0.50 m³ (30 % of the pile), 0.3 m inside 0.04 m³ (floor noise).
+BAY_MARGIN_M = 0.3
+BAY_WALL_TOP = 3.0
+BAY_CEILING_Z = 2.8
+BAY_CAMERA_Z = 2.6
+BAY_TARGET = (0.0, 0.0, 0.0)  # the wall cameras aim at the middle of the bay's floor
+
+
+def _bay_site(g: Grain) -> Site:
+    return Site(region=square(BAY_HALF - BAY_MARGIN_M), floor_z=0.0, ceiling_z=BAY_CEILING_Z,
+                bulk_density_t_m3=g.density_t_m3)
+
+
+def empty_scene(g: Grain) -> Scene:
+    """The walled bay with nothing in it: floor at z = 0, walls up to BAY_WALL_TOP outside the
+    region, volume 0. What a walled installation is calibrated on before it is filled."""
+    return Scene(
+        name="empty", grain=g, site=_bay_site(g),
+        height=_bay(lambda x, y: np.zeros(np.broadcast(x, y).shape), BAY_WALL_TOP),
+        extent=BAY_EXTENT, outer_z=None, volume_m3=0.0, target=BAY_TARGET, layout="wall",
+        wall_half_m=BAY_HALF, wall_camera_z=BAY_CAMERA_Z,
+        params={"wall_top": BAY_WALL_TOP, "region_half": BAY_HALF - BAY_MARGIN_M},
+    )
+
+
+def bay_cone_scene(g: Grain) -> Scene:
+    """The paper's pile (~1.68 m³, a cone at the angle of repose) in the middle of the empty
+    bay: 1.5 m of floor around it, every wall camera sees it, the floor and the walls."""
+    radius = float((3 * PAPER_PILE_M3 / (np.pi * g.slope)) ** (1 / 3))
+    peak = g.slope * radius
+    return Scene(
+        name="bay-cone", grain=g, site=_bay_site(g),
+        height=_bay(lambda x, y: cone_height(x, y, (0.0, 0.0), radius, g.slope), BAY_WALL_TOP),
+        extent=BAY_EXTENT, outer_z=None, volume_m3=float(np.pi * radius**2 * peak / 3),
+        target=BAY_TARGET, layout="wall", wall_half_m=BAY_HALF, wall_camera_z=BAY_CAMERA_Z,
+        params={"centre": (0.0, 0.0), "radius": radius, "height": peak,
+                "wall_top": BAY_WALL_TOP, "region_half": BAY_HALF - BAY_MARGIN_M},
+    )
+
+
 _BUILDERS: dict[str, Callable[[Grain], Scene]] = {
     "cone": cone_scene, "piles": piles_scene, "ridge": ridge_scene,
     "crater": crater_scene, "full": full_scene, "flat": flat_scene,
+    "empty": empty_scene, "bay-cone": bay_cone_scene,
 }
 
 
