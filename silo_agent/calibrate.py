@@ -60,7 +60,7 @@ FLOOR_RANSAC_SCORED = 2000  # points on which every candidate is scored (a fixed
 FLOOR_REFINE_DISTANCE_M = 0.03  # points this close to the RANSAC plane refine it (least squares)
 FLOOR_MIN_POINTS = 500  # fewer floor inliers: this camera does not see the floor
 FLOOR_CELL_M = 0.10  # cells in which a pile's foot is told from the floor
-FLOOR_RAISED_M = 0.015  # a cell whose points average this far above the plane is not floor
+FLOOR_RAISED_M = 0.015  # a cell whose points average this far off the plane is not floor
 FLOOR_MARGIN_CELLS = 2  # and neither are its neighbours this many cells around
 ICP_ITERATIONS = 15  # per scale
 ICP_SCALES = (1.0, 0.5, 0.25)  # correspondence distance, as fractions of icp_max_distance_m
@@ -396,7 +396,9 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     height = pts @ plane[:3] + plane[3]  # above the RANSAC plane
     if np.count_nonzero(np.abs(height[band]) <= FLOOR_RANSAC_DISTANCE_M) < FLOOR_MIN_POINTS:
         return np.empty((0, 3)), np.empty(0)
-    # cells (FLOOR_CELL_M) whose points stand above the floor on average, and their margin
+    # cells (FLOOR_CELL_M) whose points stand off the floor on average, and their margin: above
+    # it is a pile's foot; the test is two-sided because noise at range makes such cells on
+    # both sides, and dropping only the high ones biased a wall camera's floor 1.7 mm low
     low = pts[:, :2].min(axis=0)
     ij = np.floor((pts[:, :2] - low) / FLOOR_CELL_M).astype(np.int64)
     shape = tuple(ij.max(axis=0) + 1)
@@ -404,9 +406,9 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     count = np.bincount(flat, minlength=shape[0] * shape[1])
     total = np.bincount(flat, height, shape[0] * shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
-        raised = (total / count > FLOOR_RAISED_M).reshape(shape)
-    raised = ndimage.binary_dilation(raised, iterations=FLOOR_MARGIN_CELLS)
-    keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~raised.ravel()[flat]
+        off = (np.abs(total / count) > FLOOR_RAISED_M).reshape(shape)
+    off = ndimage.binary_dilation(off, iterations=FLOOR_MARGIN_CELLS)
+    keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~off.ravel()[flat]
     return pts[keep], point_sigma(cam[near][keep, 2])
 
 
