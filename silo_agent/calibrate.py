@@ -62,6 +62,7 @@ FLOOR_MIN_POINTS = 500  # fewer floor inliers: this camera does not see the floo
 FLOOR_CELL_M = 0.10  # cells in which a pile's foot is told from the floor
 FLOOR_RAISED_M = 0.015  # a cell whose points average this far off the plane is not floor
 FLOOR_MARGIN_CELLS = 2  # and neither are its neighbours this many cells around
+FLOOR_OFF_SIGMAS = 2.0  # ... or, further away, this many times one point's noise at its depth
 ICP_ITERATIONS = 15  # per scale
 ICP_SCALES = (1.0, 0.5, 0.25)  # correspondence distance, as fractions of icp_max_distance_m
 ICP_MIN_INCIDENCE_COS = 0.17  # points seen more grazing than ~80 deg are not used
@@ -396,17 +397,20 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     height = pts @ plane[:3] + plane[3]  # above the RANSAC plane
     if np.count_nonzero(np.abs(height[band]) <= FLOOR_RANSAC_DISTANCE_M) < FLOOR_MIN_POINTS:
         return np.empty((0, 3)), np.empty(0)
-    # cells (FLOOR_CELL_M) whose points stand off the floor on average, and their margin: above
-    # it is a pile's foot; the test is two-sided because noise at range makes such cells on
-    # both sides, and dropping only the high ones biased a wall camera's floor 1.7 mm low
+    # cells (FLOOR_CELL_M) whose points stand off the floor on average, and their margin: a
+    # pile's foot. Further than the noise could put them (it is correlated over a cell, so one
+    # point's sigma), on either side: at range noise alone makes such cells, and dropping only
+    # the high ones at 1.5 cm left every wall camera's floor low (1.5 mm on average)
     low = pts[:, :2].min(axis=0)
     ij = np.floor((pts[:, :2] - low) / FLOOR_CELL_M).astype(np.int64)
     shape = tuple(ij.max(axis=0) + 1)
     flat = ij[:, 0] * shape[1] + ij[:, 1]
     count = np.bincount(flat, minlength=shape[0] * shape[1])
     total = np.bincount(flat, height, shape[0] * shape[1])
+    depth = np.bincount(flat, cam[near][:, 2], shape[0] * shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
-        off = (np.abs(total / count) > FLOOR_RAISED_M).reshape(shape)
+        limit = np.maximum(FLOOR_RAISED_M, FLOOR_OFF_SIGMAS * point_sigma(depth / count))
+        off = (np.abs(total / count) > limit).reshape(shape)
     off = ndimage.binary_dilation(off, iterations=FLOOR_MARGIN_CELLS)
     keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~off.ravel()[flat]
     return pts[keep], point_sigma(cam[near][keep, 2])

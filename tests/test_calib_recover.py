@@ -84,7 +84,7 @@ def test_floor_calibration_recovers_height_and_tilt(perturbed) -> None:
 def test_a_far_floor_is_fitted_without_bias() -> None:
     """Wall cameras 2.6 m up see the empty bay's floor from 2.8-6 m, where the noise makes
     10 cm cells stand off the floor on both sides. Dropping only the high ones (meant for a
-    pile's foot) left the floor 1.7 mm low on average, about 3 pp of a pile's volume there."""
+    pile's foot) left the floor 1.5 mm low on average, about 2.5 pp of a pile's volume there."""
     scene = make_scene("empty")
     simulated = SimRig(scene)
     heights = []
