@@ -568,8 +568,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_calibrate)
 
     p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
-    p.add_argument("--scene", required=True,
-                   choices=["cone", "piles", "ridge", "crater", "full", "flat"])
+    p.add_argument("--scene", required=True,  # sim.SCENES, not imported: no numpy at start-up
+                   choices=["cone", "piles", "ridge", "crater", "full", "flat", "empty",
+                            "bay-cone"])
     p.add_argument("--views", required=True, type=_views, metavar="A1,A5",
                    help="camera positions A1-A8 (midpoints A1 A3 A5 A7, corners A2 A4 A6 A8)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="new scan directory")

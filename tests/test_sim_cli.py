@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from silo_agent.capture import capture_all
-from silo_agent.cli import main
+from silo_agent.cli import build_parser, main
 from silo_agent.config import load_config, parse_config
 from silo_agent.scan import read_scan
-from silo_agent.sim import make_scene, simulate, view_pose
+from silo_agent.sim import SCENES, make_scene, simulate, view_pose
 
 DEMO = Path(__file__).resolve().parent.parent / "config" / "demo.toml"
 
@@ -37,6 +37,13 @@ def test_simulate_cli_writes_a_readable_scan_with_truth(tmp_path: Path,
         np.testing.assert_array_equal(got.points, want.points)
         assert got.intrinsics == want.intrinsics
     assert main(argv) == 1  # scans are never overwritten
+
+
+def test_simulate_offers_every_scene_of_the_library() -> None:
+    parser = build_parser()
+    for name in SCENES:
+        args = parser.parse_args(["simulate", "--scene", name, "--views", "A1", "--out", "x"])
+        assert args.scene == name
 
 
 @pytest.mark.parametrize("flag", [["--views", "A1,A9"], ["--calib-error", "0.5"],
