@@ -60,7 +60,7 @@ FLOOR_RANSAC_SCORED = 2000  # points on which every candidate is scored (a fixed
 FLOOR_REFINE_DISTANCE_M = 0.03  # points this close to the RANSAC plane refine it (least squares)
 FLOOR_MIN_POINTS = 500  # fewer floor inliers: this camera does not see the floor
 FLOOR_CELL_M = 0.10  # cells in which a pile's foot is told from the floor
-FLOOR_RAISED_M = 0.015  # a cell whose points average this far off the plane is not floor
+FLOOR_OFF_M = 0.015  # a cell whose points average this far off the plane is not floor
 FLOOR_MARGIN_CELLS = 2  # and neither are its neighbours this many cells around
 FLOOR_OFF_SIGMAS = 2.0  # ... or, further away, this many times one point's noise at its depth
 ICP_ITERATIONS = 15  # per scale
@@ -386,8 +386,8 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     from scipy import ndimage
 
     cam = camera.points.astype(np.float64)
-    near = np.linalg.norm(cam, axis=1) <= settings.floor_max_range_m
-    pts = cam[near] @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+    cam = cam[np.linalg.norm(cam, axis=1) <= settings.floor_max_range_m]
+    pts = cam @ extrinsic[:3, :3].T + extrinsic[:3, 3]
     band = np.abs(pts[:, 2] - floor_z) <= settings.floor_band_m
     if band.sum() < FLOOR_MIN_POINTS:
         return np.empty((0, 3)), np.empty(0)
@@ -407,13 +407,13 @@ def floor_points(camera: CameraCloud, extrinsic: np.ndarray, floor_z: float,
     flat = ij[:, 0] * shape[1] + ij[:, 1]
     count = np.bincount(flat, minlength=shape[0] * shape[1])
     total = np.bincount(flat, height, shape[0] * shape[1])
-    depth = np.bincount(flat, cam[near][:, 2], shape[0] * shape[1])
+    depth = np.bincount(flat, cam[:, 2], shape[0] * shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
-        limit = np.maximum(FLOOR_RAISED_M, FLOOR_OFF_SIGMAS * point_sigma(depth / count))
+        limit = np.maximum(FLOOR_OFF_M, FLOOR_OFF_SIGMAS * point_sigma(depth / count))
         off = (np.abs(total / count) > limit).reshape(shape)
     off = ndimage.binary_dilation(off, iterations=FLOOR_MARGIN_CELLS)
     keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~off.ravel()[flat]
-    return pts[keep], point_sigma(cam[near][keep, 2])
+    return pts[keep], point_sigma(cam[keep, 2])
 
 
 # ---------------------------------------------------------------- registration
