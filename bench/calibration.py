@@ -167,7 +167,7 @@ def split_errors(calibrated: dict, truth: dict, pivot: np.ndarray
             1000 * float(np.mean([v[2] for v in shifts.values()])))
 
 
-def _max_residual(residuals: dict) -> float:
+def max_residual(residuals: dict) -> float:
     return max((abs(r.median_m) for r in residuals.values()), default=float("nan"))
 
 
@@ -208,7 +208,7 @@ def pooled_run(rig: SimRig, views: str, seed: int, scans: list[Scan], perfect: f
     pivot = np.array([scene.target[0], scene.target[1], scene.site.floor_z])
     vertical, horizontal, dilation, height = split_errors(floor.extrinsics(), truth, pivot)
     return Pooled(scene.name, views, seed, len(scans), pp(floor.extrinsics()),
-                  _max_residual(floor.residual_after), seconds, pp(vertical), pp(horizontal),
+                  max_residual(floor.residual_after), seconds, pp(vertical), pp(horizontal),
                   dilation, height, floor_fit_height(pooled, truth, pivot))  # fmt: skip
 
 
@@ -237,8 +237,8 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
     vertical, horizontal, dilation, height = split_errors(floor.extrinsics(), truth, pivot)
     run = Run(scene.name, views, seed, 100.0 * (perfect / scene.volume_m3 - 1),
               pp(volume(None)), pp(volume(floor.extrinsics())), pp(volume(gravity.extrinsics())),
-              _max_residual(floor.residual_before), _max_residual(floor.residual_after),
-              _max_residual(gravity.residual_after), seconds, pp(volume(vertical)),
+              max_residual(floor.residual_before), max_residual(floor.residual_after),
+              max_residual(gravity.residual_after), seconds, pp(volume(vertical)),
               pp(volume(horizontal)), dilation, height,
               floor_fit_height(scan, truth, pivot))  # fmt: skip
     if spacing_sigma is not None:
@@ -258,7 +258,7 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
             max(1000 * abs(np.linalg.norm(after[sp.a][:3, 3] - after[sp.b][:3, 3]) - true_m(sp))
                 for sp in spacings),
             max(1000 * abs(sp.distance_m - true_m(sp)) for sp in spacings),
-            _max_residual(spaced.residual_after), spaced_seconds))
+            max_residual(spaced.residual_after), spaced_seconds))
     pooled = [pooled_run(rig, views, seed, scans[:n], perfect, settings)
               for n in pool if n > 1]
     return run, pooled
@@ -295,7 +295,7 @@ def drift(rig: SimRig, settings: ReconstructionConfig, repeats: int) -> list[str
         for k in range(config.drift_consecutive + 1):
             scan = knocked_scan(rig, views, k, "A3", axis, 1.0)
             result = reconstruct(scan, settings)
-            largest = max(largest, _max_residual(result.registration))
+            largest = max(largest, max_residual(result.registration))
             for event in monitor.update(result.registration, scan.cameras):
                 if event.kind == "raised":
                     first = k + 1 if first is None else first
@@ -308,7 +308,7 @@ def drift(rig: SimRig, settings: ReconstructionConfig, repeats: int) -> list[str
     for k in range(repeats):
         scan = knocked_scan(rig, views, 100 + k, None, "pitch", 0.0)
         result = reconstruct(scan, settings)
-        largest = max(largest, _max_residual(result.registration))
+        largest = max(largest, max_residual(result.registration))
         events += len(monitor.update(result.registration, scan.cameras))
     lines += ["", f"Unchanged scene, {repeats} repeated scans (new noise each): {events} alarm "
               f"events; largest abs. median residual {largest * 1000:.2f} mm.", ""]

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from benchlib import header
-from calibration import ERROR, TARGET_PP, VIEWS, _max_residual, floor_fit_height, split_errors
+from calibration import ERROR, TARGET_PP, VIEWS, floor_fit_height, max_residual, split_errors
 
 from silo_agent.calibrate import Calibration, calibrate, scan_residuals, with_extrinsics
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
@@ -106,11 +106,11 @@ def one(empty: SimRig, cone: SimRig, views: str, seed: int,
                                  0.02, config)
         outcomes[workflow] = Outcome(
             pp(volume(poses)), pp(volume(vertical)), pp(volume(horizontal)), dilation, height,
-            floor_fit_height(scan, truth, pivot), _max_residual(result.residual_before),
-            _max_residual(result.residual_after), _max_residual(on_cone), _pairs(result), seconds)
+            floor_fit_height(scan, truth, pivot), max_residual(result.residual_before),
+            max_residual(result.residual_after), max_residual(on_cone), _pairs(result), seconds)
     before = scan_residuals(cone_scan.cameras, cone_scan.site, 0.02, CalibrationConfig())
     return Run(views, seed, 100.0 * (perfect / exact - 1), pp(volume(None)),
-               _max_residual(before), outcomes)
+               max_residual(before), outcomes)
 
 
 def rms(values: list[float]) -> float:
