@@ -8,7 +8,8 @@ the same true and nominal poses (the scenes share target and layout):
 - `empty`: the bay before it is filled (floor and walls in every view), the calibration scan
   of the *empty-bay* workflow;
 - `bay-cone`: the paper's 1.68 m³ pile in the bay, floor around it; the scan measured, and the
-  calibration scan of the *pile* workflow (calibrating on the measurement scan itself).
+  calibration scan of the *pile* workflow (calibrating on the measurement scan itself), and
+  with `--pool N` of the *pile, N scans pooled* workflow (it and N - 1 further frames).
 
 Reported per workflow, after `calibrate(..., floor=True)`: the volume of the bay-cone scan
 reconstructed with the calibrated extrinsics against the same scan with the true extrinsics
@@ -27,19 +28,38 @@ from pathlib import Path
 
 import numpy as np
 from benchlib import header
-from calibration import ERROR, TARGET_PP, VIEWS, floor_fit_height, max_residual, split_errors
+from calibration import (
+    ERROR,
+    TARGET_PP,
+    VIEWS,
+    floor_fit_height,
+    max_residual,
+    repeated_scans,
+    split_errors,
+)
 
-from silo_agent.calibrate import Calibration, calibrate, scan_residuals, with_extrinsics
+from silo_agent.calibrate import (
+    Calibration,
+    calibrate,
+    pool_scans,
+    scan_residuals,
+    with_extrinsics,
+)
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
 
 # workflow: (calibration scan, the calibration's settings); "floor only": the same leveling
-# with no camera pair registered (min_overlap = 1), to show what the registration adds
+# with no camera pair registered (min_overlap = 1), to show what the registration adds;
+# with --pool N also "pile, N scans pooled": the bay-cone scan and N - 1 more frames of it
 WORKFLOWS = {"empty-bay": ("empty", CalibrationConfig()),
              "empty-bay, floor only": ("empty", CalibrationConfig(min_overlap=1.0)),
              "pile": ("bay-cone", CalibrationConfig())}
+
+
+def pooled_workflow(n: int) -> str:
+    return f"pile, {n} scans pooled"
 
 
 @dataclass(frozen=True)
@@ -74,10 +94,11 @@ def _pairs(calibration: Calibration) -> str:
                      for p in calibration.pairs)  # fmt: skip
 
 
-def one(empty: SimRig, cone: SimRig, views: str, seed: int,
-        settings: ReconstructionConfig) -> Run:  # fmt: skip
+def one(empty: SimRig, cone: SimRig, views: str, seed: int, settings: ReconstructionConfig,
+        pool: int = 1) -> Run:  # fmt: skip
     empty_scan = simulate(empty.scene, VIEWS[views], seed, ERROR, rig=empty)
-    cone_scan = simulate(cone.scene, VIEWS[views], seed, ERROR, rig=cone)
+    cone_scans = repeated_scans(cone, views, seed, pool)  # the first is simulate(...)'s scan
+    cone_scan = cone_scans[0]
     truth = {c.serial: np.asarray(c.extra["sim_true_extrinsic"]) for c in cone_scan.cameras}
     for a, b in zip(empty_scan.cameras, cone_scan.cameras, strict=True):  # one rig, two scenes
         assert a.serial == b.serial and np.array_equal(a.extrinsic, b.extrinsic)
@@ -94,9 +115,14 @@ def one(empty: SimRig, cone: SimRig, views: str, seed: int,
         return 100.0 * (v - perfect) / exact
 
     pivot = np.array([cone.scene.target[0], cone.scene.target[1], cone.scene.site.floor_z])
+    calibration_scans = {"empty": empty_scan, "bay-cone": cone_scan}
+    workflows = dict(WORKFLOWS)
+    if pool > 1:
+        calibration_scans["pooled"] = pool_scans(cone_scans)
+        workflows[pooled_workflow(pool)] = ("pooled", CalibrationConfig())
     outcomes = {}
-    for workflow, (name, config) in WORKFLOWS.items():
-        scan = empty_scan if name == "empty" else cone_scan
+    for workflow, (name, config) in workflows.items():
+        scan = calibration_scans[name]
         started = time.perf_counter()
         result = calibrate(scan, config, floor=True)
         seconds = time.perf_counter() - started
@@ -122,15 +148,16 @@ def report(runs: list[Run]) -> list[str]:
              "Volume of the bay-cone scan in percentage points of its exact volume, against the "
              "same scan reconstructed with the true extrinsics ('perfect'). *empty-bay*: "
              "`calibrate --floor` on a scan of the empty bay by the same rig; *empty-bay, floor "
-             "only*: the same with no camera pair registered (`min_overlap = 1`: leveling on "
-             "the floor, the rig's yaw and plan position kept as configured); *pile*: on the "
-             "bay-cone scan itself. Horizontal / vertical part: the scan reconstructed with "
-             "only that part of each camera's remaining pose error kept (as in "
-             "calibration.md). Dilation: mean radial error of the cameras' plan positions "
-             "(+: too far out). Height: mean height error of the cameras' views at the pile's "
-             "centre; floor fit on true poses: the same for the floor planes `calibrate` fits "
-             "to each camera's points of the calibration scan placed with its true extrinsic "
-             "(the leveling's own error).", "",
+             "only*: the same with no camera pair registered (`min_overlap = 1`: leveling on the "
+             "floor, the rig's yaw and plan position kept as configured); *pile*: on the bay-cone "
+             "scan itself; *pile, N scans pooled* (`--pool N`): on the bay-cone scan and N - 1 "
+             "further frames of it pooled (`pool_scans`). Horizontal / vertical part: the scan "
+             "reconstructed with only that part of each camera's remaining pose error kept (as in "
+             "calibration.md). Dilation: mean radial error of the cameras' plan positions (+: too "
+             "far out). Height: mean height error of the cameras' views at the pile's centre; "
+             "floor fit on true poses: the same for the floor planes `calibrate` fits to each "
+             "camera's points of the calibration scan placed with its true extrinsic (the "
+             "leveling's own error).", "",
              f"| views | workflow | within {TARGET_PP} pp of perfect | mean abs (pp) "
              "| worst (pp) | mean abs vertical part (pp) | mean abs horizontal part (pp) "
              "| rms dilation (mm) | mean / rms height (mm) | mean / rms floor fit on true poses "
@@ -146,7 +173,7 @@ def report(runs: list[Run]) -> list[str]:
         lines.append(f"| {views} | before calibration | {int((before <= TARGET_PP).sum())} of "
                      f"{len(rows)} | {before.mean():.2f} | {before.max():.2f} | | | | | | | "
                      f"{max(r.residual_cone_before_m for r in rows) * 1000:.1f} | |")
-        for workflow in WORKFLOWS:
+        for workflow in rows[0].outcomes:
             got = [r.outcomes[workflow] for r in rows]
             after = np.abs([o.after_pp for o in got])
             lines.append(
@@ -183,6 +210,8 @@ def report(runs: list[Run]) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--pool", type=int, default=1, metavar="N",
+                        help="also calibrate on N frames of the bay-cone scan pooled")
     parser.add_argument("--views", default=",".join(VIEWS),
                         help=f"view sets, of {', '.join(VIEWS)}")
     parser.add_argument("--out", type=Path, default=Path("bench/results/calibration_bay.md"))
@@ -195,7 +224,7 @@ def main() -> None:
     runs = []
     for views in chosen:
         for seed in range(args.seeds):
-            r = one(empty, cone, views, seed, settings)
+            r = one(empty, cone, views, seed, settings, args.pool)
             runs.append(r)
             print(f"{views} seed {seed}: perfect {r.perfect_pct:+.2f} %, before "
                   f"{r.before_pp:+.2f} pp; "
