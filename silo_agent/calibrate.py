@@ -429,6 +429,27 @@ class _View:
     tree: Any  # scipy cKDTree over `points`
 
 
+def pixel_means(points: np.ndarray, colors: np.ndarray | None,
+                intrinsics: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Camera-frame points (and colours) of several captures averaged per pixel: one point
+    per pixel ray, the pixel found from the intrinsics the points were deprojected with."""
+    cam = points.astype(np.float64)
+    u = np.rint(cam[:, 0] / cam[:, 2] * intrinsics["fx"] + intrinsics["ppx"]).astype(np.int64)
+    v = np.rint(cam[:, 1] / cam[:, 2] * intrinsics["fy"] + intrinsics["ppy"]).astype(np.int64)
+    u -= u.min()
+    _, inverse, count = np.unique((v - v.min()) * (u.max() + 1) + u, return_inverse=True,
+                                  return_counts=True)  # fmt: skip
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.bincount(inverse, values[:, k])
+                                for k in range(values.shape[1])]) / count[:, None]  # fmt: skip
+
+    averaged = mean(cam).astype(points.dtype)
+    if colors is None:
+        return averaged, None
+    return averaged, np.rint(mean(colors.astype(np.float64))).astype(colors.dtype)
+
+
 def _view(camera: CameraCloud, extrinsic: np.ndarray, site: Site,
           settings: CalibrationConfig, drop_level: bool = False) -> _View:
     """Voxel down-sampled (open3d) cloud under the ceiling, with normals and a noise model."""
@@ -837,9 +858,14 @@ def pool_scans(scans: Sequence[Scan], names: Sequence[str] | None = None) -> Sca
     """One scan holding, per camera, the points of all `scans` (several calibration scans of
     the same installation taken one after another: same cameras, same site, nothing moved).
 
-    Points are pooled in each camera's own frame, so the floor fit and the registration see
-    N times the points and average N frames' independent noise (one frame's floor fit is off by
-    0.1-0.2 mm of height, about 1.5 pp of a pile's volume per mm). The first scan gives the
+    Each camera's points are averaged per pixel over the scans (its own frame; the pixel from
+    its intrinsics), so the floor fit and the registration see one capture with N frames'
+    independent noise averaged (one frame's floor fit is off by 0.1-0.2 mm of height, about
+    1.5 pp of a pile's volume per mm). Pooled as N times the points instead, the noise along
+    the rays stayed as wide: the floor fit's cut at 3 cm and the registration's 2 cm voxels
+    then saw a thicker surface, not a sharper one (walled bay, four views, floor fitted on the
+    true poses: +0.63 mm mean, 1.19 mm rms; per pixel: +0.01 mm, 0.51 mm; one scan: 1.40 mm
+    rms). A camera without intrinsics has its points concatenated. The first scan gives the
     order, extrinsics, intrinsics and metadata; a camera's IMU gravity is the mean of its
     readings. Raises `ScanMismatch`, naming the scan (`names[k]`, default its scan id), when a
     scan's serials or site differ from the first one's.
@@ -873,17 +899,19 @@ def pool_scans(scans: Sequence[Scan], names: Sequence[str] | None = None) -> Sca
     cameras = []
     for camera in first.cameras:
         same = [next(c for c in scan.cameras if c.serial == camera.serial) for scan in scans]
+        points = np.concatenate([c.points for c in same])
         colors = None
         if all(c.colors is not None for c in same):
             colors = np.concatenate([c.colors for c in same])
+        if camera.intrinsics is not None:
+            points, colors = pixel_means(points, colors, camera.intrinsics)
         extra = dict(camera.extra)
         gravities = [g for g in (gravity_of(c) for c in same) if g is not None]
         if gravities:
             extra["gravity"] = [float(v) for v in np.mean(gravities, axis=0)]
             extra.pop("gravity_angle_deg", None)  # of one reading; gravity_angles() recomputes
         extra["pooled_frames"] = len(same)
-        cameras.append(replace(camera, points=np.concatenate([c.points for c in same]),
-                               colors=colors, extra=extra))
+        cameras.append(replace(camera, points=points, colors=colors, extra=extra))
     return replace(first, cameras=cameras,
                    extra={**first.extra, "pooled_scans": [s.scan_id for s in scans]})
 
