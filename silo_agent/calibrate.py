@@ -5,9 +5,10 @@ the two surfaces of an overlap apart, and a 1 cm height bias over a whole floor 
 volume. One calibration scan (or several taken one after another, pooled by `pool_scans` so
 that their noise averages) fixes that:
 
-1. *Relative registration*: pairwise point-to-plane ICP between every two cameras whose views
-   overlap, starting from the configured extrinsics, combined in a pose graph (open3d
-   multiway registration), so that all overlaps agree at once.
+1. *Relative registration*: point-to-plane ICP between every two cameras whose views overlap,
+   starting from the configured extrinsics, all pairs solved as one least-squares pose graph
+   with a prior on each camera's correction (open3d's multiway registration drifted along
+   what the scene cannot show), so that all overlaps agree at once.
 2. *Leveling* fixes what relative registration cannot see (the whole rig's tilt and height):
    with `floor`, each camera's own view of the floor plane `z = floor_z` (RANSAC, then least
    squares) sets its pitch, roll and height; otherwise the cameras' accelerometer gravity
@@ -24,7 +25,8 @@ Every scan measures the height disagreement of camera pairs (reconstruct/residua
 `DriftMonitor` / `drift_step` here turns those and the gravity vectors into raise/clear events
 (pure: previous state in, new state and events out), for the alarm publisher to forward.
 
-open3d is imported lazily by the functions that need it (ICP, RANSAC); the rest is numpy.
+open3d is imported lazily by the function that needs it (voxels and normals for ICP); the
+rest is numpy and scipy.
 """
 
 from __future__ import annotations
