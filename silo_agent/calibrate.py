@@ -866,7 +866,7 @@ def pool_scans(scans: Sequence[Scan], names: Sequence[str] | None = None) -> Sca
     1.5 pp of a pile's volume per mm). Pooled as N times the points instead, the noise along
     the rays stayed as wide: the floor fit's cut at 3 cm and the registration's 2 cm voxels
     then saw a thicker surface, not a sharper one (walled bay, four views, floor fitted on the
-    true poses: +0.63 mm mean, 1.19 mm rms; per pixel: +0.01 mm, 0.51 mm; one scan: 1.40 mm
+    true poses: +0.63 mm mean, 1.19 mm rms; per pixel: +0.01 mm, 0.50 mm; one scan: 1.40 mm
     rms). A camera without intrinsics has its points concatenated. The first scan gives the
     order, extrinsics, intrinsics and metadata; a camera's IMU gravity is the mean of its
     readings. Raises `ScanMismatch`, naming the scan (`names[k]`, default its scan id), when a
