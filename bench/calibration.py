@@ -21,7 +21,8 @@ For every scene x view set x seed, the simulator renders cameras that really sit
   the N = 1 scan), the volume still measured on the first scan against the same 'perfect'.
 - with `--spacing-sigma S`: the same scan calibrated with `--floor` and measured camera
   spacings (`[[calibration.spacing]]`): the true distance between every two cameras' origins
-  plus Gaussian noise of S (seeded per scene, views and seed), with sigma_m = S.
+  plus Gaussian noise of S (seeded per scene, views and seed), with sigma_m = S; with
+  `--pool` too, also on the largest number of scans pooled, spacings and pooling together.
 """
 
 from __future__ import annotations
@@ -96,6 +97,7 @@ class Spaced:
     measurement_error_mm: float  # largest |measured - true distance| (the injected noise)
     residual_after_m: float
     seconds: float
+    pooled: Pooled | None = None  # with the spacings on the largest number of scans pooled
 
 
 def measured_spacings(truth: dict, sigma: float, rng: np.random.Generator
@@ -191,8 +193,10 @@ def repeated_scans(rig: SimRig, views: str, seed: int, count: int) -> list[Scan]
 
 
 def pooled_run(rig: SimRig, views: str, seed: int, scans: list[Scan], perfect: float,
-               settings: ReconstructionConfig) -> Pooled:  # fmt: skip
-    """`calibrate --floor` on all `scans` pooled; volumes on the first scan."""
+               settings: ReconstructionConfig, config: CalibrationConfig | None = None,
+               ) -> Pooled:  # fmt: skip
+    """`calibrate --floor` on all `scans` pooled (with `config`, default the defaults);
+    volumes on the first scan."""
     scene, scan = rig.scene, scans[0]
     truth = {c.serial: np.asarray(c.extra["sim_true_extrinsic"]) for c in scan.cameras}
     pooled = pool_scans(scans)
@@ -203,7 +207,7 @@ def pooled_run(rig: SimRig, views: str, seed: int, scans: list[Scan], perfect: f
         return 100.0 * (volume - perfect) / scene.volume_m3
 
     started = time.perf_counter()
-    floor = calibrate(pooled, CalibrationConfig(), floor=True)
+    floor = calibrate(pooled, config or CalibrationConfig(), floor=True)
     seconds = time.perf_counter() - started
     pivot = np.array([scene.target[0], scene.target[1], scene.site.floor_z])
     vertical, horizontal, dilation, height = split_errors(floor.extrinsics(), truth, pivot)
@@ -259,6 +263,10 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
                 for sp in spacings),
             max(1000 * abs(sp.distance_m - true_m(sp)) for sp in spacings),
             max_residual(spaced.residual_after), spaced_seconds))
+        if any(n > 1 for n in pool):
+            both = pooled_run(rig, views, seed, scans[:max(pool)], perfect, settings,
+                              CalibrationConfig(spacing=spacings))
+            run = replace(run, spaced=replace(run.spaced, pooled=both))
     pooled = [pooled_run(rig, views, seed, scans[:n], perfect, settings)
               for n in pool if n > 1]
     return run, pooled
@@ -522,6 +530,14 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
             f"| {max(s.measurement_error_mm for s in sp):.1f} "
             f"| {np.mean([r.seconds for r in rows]):.1f} / "
             f"{np.mean([s.seconds for s in sp]):.1f} |")
+    def both_rows(rows: list[Run]) -> list[tuple[str, list[tuple]]]:
+        both = [r.spaced.pooled for r in rows if r.spaced.pooled is not None]
+        if len(both) != len(rows):
+            return []
+        return [(f"with, {both[0].n} scans pooled", [
+            (b.after_pp, b.vertical_pp, b.horizontal_pp, b.dilation_mm, b.residual_after_m)
+            for b in both])]
+
     lines += ["", "### Targets, without and with measured spacings", "",
               "| views | spacings | within 0.3 pp of perfect | mean abs (pp) | worst (pp) "
               "| mean abs vertical part (pp) | mean abs horizontal part (pp) "
@@ -532,7 +548,8 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
         for label, got in (("without", [(r.after_pp, r.vertical_pp, r.horizontal_pp,
                                          r.dilation_mm, r.residual_after_m) for r in rows]),
                            ("with", [(s.after_pp, s.vertical_pp, s.horizontal_pp, s.dilation_mm,
-                                      s.residual_after_m) for s in (r.spaced for r in rows)])):
+                                      s.residual_after_m) for s in (r.spaced for r in rows)]),
+                           *both_rows(rows)):
             after = np.abs([g[0] for g in got])
             lines.append(
                 f"| {views} | {label} | {int((after <= TARGET_PP).sum())} of {len(got)} "
@@ -543,14 +560,16 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
                 f"| {max(g[4] for g in got) * 1000:.1f} |")  # fmt: skip
     lines += ["", "### Every scan, without / with measured spacings", "",
               "| scene | views | seed | after --floor (pp) | horizontal part only (pp) "
-              "| dilation (mm) | spacing error after, worst pair (mm) |",
-              "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+              "| dilation (mm) | spacing error after, worst pair (mm) "
+              "| with spacings and the most scans pooled: after / horizontal part (pp) |",
+              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in runs:
-        s = r.spaced
+        s, b = r.spaced, r.spaced.pooled
+        both = f"{b.after_pp:+.2f} / {b.horizontal_pp:+.2f} (N = {b.n})" if b else ""
         lines.append(f"| {r.scene} | {r.views} | {r.seed} | {r.after_pp:+.2f} / {s.after_pp:+.2f} "
                      f"| {r.horizontal_pp:+.2f} / {s.horizontal_pp:+.2f} "
                      f"| {r.dilation_mm:+.1f} / {s.dilation_mm:+.1f} "
-                     f"| {s.spacing_error_mm:.1f} |")
+                     f"| {s.spacing_error_mm:.1f} | {both} |")
     return [*lines, ""]
 
 
