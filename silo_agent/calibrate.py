@@ -431,27 +431,6 @@ class _View:
     tree: Any  # scipy cKDTree over `points`
 
 
-def pixel_means(points: np.ndarray, colors: np.ndarray | None,
-                intrinsics: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
-    """Camera-frame points (and colours) of several captures averaged per pixel: one point
-    per pixel ray, the pixel found from the intrinsics the points were deprojected with."""
-    cam = points.astype(np.float64)
-    u = np.rint(cam[:, 0] / cam[:, 2] * intrinsics["fx"] + intrinsics["ppx"]).astype(np.int64)
-    v = np.rint(cam[:, 1] / cam[:, 2] * intrinsics["fy"] + intrinsics["ppy"]).astype(np.int64)
-    u -= u.min()
-    _, inverse, count = np.unique((v - v.min()) * (u.max() + 1) + u, return_inverse=True,
-                                  return_counts=True)  # fmt: skip
-
-    def mean(values: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.bincount(inverse, values[:, k])
-                                for k in range(values.shape[1])]) / count[:, None]  # fmt: skip
-
-    averaged = mean(cam).astype(points.dtype)
-    if colors is None:
-        return averaged, None
-    return averaged, np.rint(mean(colors.astype(np.float64))).astype(colors.dtype)
-
-
 def _view(camera: CameraCloud, extrinsic: np.ndarray, site: Site,
           settings: CalibrationConfig, drop_level: bool = False) -> _View:
     """Voxel down-sampled (open3d) cloud under the ceiling, with normals and a noise model."""
@@ -856,9 +835,31 @@ def _site_difference(a: Site, b: Site) -> str | None:
     return None
 
 
+def pixel_means(points: np.ndarray, colors: np.ndarray | None,
+                intrinsics: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Camera-frame points (and colours) of several captures averaged per pixel: one point
+    per pixel ray, the pixel found from the intrinsics the points were deprojected with."""
+    cam = points.astype(np.float64)
+    u = np.rint(cam[:, 0] / cam[:, 2] * intrinsics["fx"] + intrinsics["ppx"]).astype(np.int64)
+    v = np.rint(cam[:, 1] / cam[:, 2] * intrinsics["fy"] + intrinsics["ppy"]).astype(np.int64)
+    u -= u.min()
+    _, inverse, count = np.unique((v - v.min()) * (u.max() + 1) + u, return_inverse=True,
+                                  return_counts=True)  # fmt: skip
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.bincount(inverse, values[:, k])
+                                for k in range(values.shape[1])]) / count[:, None]  # fmt: skip
+
+    averaged = mean(cam).astype(points.dtype)
+    if colors is None:
+        return averaged, None
+    return averaged, np.rint(mean(colors.astype(np.float64))).astype(colors.dtype)
+
+
 def pool_scans(scans: Sequence[Scan], names: Sequence[str] | None = None) -> Scan:
-    """One scan holding, per camera, the points of all `scans` (several calibration scans of
-    the same installation taken one after another: same cameras, same site, nothing moved).
+    """One scan holding, per camera, the per-pixel mean of all `scans`' points (several
+    calibration scans of the same installation taken one after another: same cameras, same
+    site, nothing moved).
 
     Each camera's points are averaged per pixel over the scans (its own frame; the pixel from
     its intrinsics), so the floor fit and the registration see one capture with N frames'
