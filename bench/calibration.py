@@ -530,6 +530,7 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
             f"| {max(s.measurement_error_mm for s in sp):.1f} "
             f"| {np.mean([r.seconds for r in rows]):.1f} / "
             f"{np.mean([s.seconds for s in sp]):.1f} |")
+
     def both_rows(rows: list[Run]) -> list[tuple[str, list[tuple]]]:
         both = [r.spaced.pooled for r in rows if r.spaced.pooled is not None]
         if len(both) != len(rows):
