@@ -61,6 +61,45 @@ KIND_BINARY = "binary"
 KIND_SPARKPLUG = "sparkplug"
 HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=1"
 LOOP_TIMEOUT_S = 0.01
+MAX_TOPIC_BYTES = 65535  # MQTT's two-byte string length
+
+
+def reply_topic_problem(topic: str, reserved: Iterable[str], allowed: str) -> str | None:
+    """Why a requested MQTT 5 Response Topic must not be published to, or None if it may.
+
+    A topic paho or the broker refuses would sit at the head of the outbox; one among the
+    agent's own (or Sparkplug / Home Assistant) topics would put reply JSON where consumers
+    expect something else. `allowed`, the documented reply topic, is always fine."""
+    if topic == allowed:
+        return None
+    if not topic:
+        return "it is empty"
+    if "+" in topic or "#" in topic:
+        return "it contains a wildcard (+ or #)"
+    if topic.startswith("$"):
+        return "it starts with $ (reserved for the broker)"
+    if "\x00" in topic:
+        return "it contains a NUL character"
+    try:
+        size = len(topic.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "it is not valid UTF-8"
+    if size > MAX_TOPIC_BYTES:
+        return f"it is {size} bytes long, MQTT allows {MAX_TOPIC_BYTES}"
+    for space in reserved:
+        if topic == space or topic.startswith(space + "/"):
+            return f"it is under {space}/, where the agent publishes"
+    return None
+
+
+def publish_packet_size(topic: str, payload: bytes, qos: int, props: Properties | None,
+                        v5: bool) -> int:
+    """Bytes of the PUBLISH packet paho will send, to compare with the broker's maximum."""
+    body = 2 + len(topic.encode("utf-8")) + (2 if qos else 0) + len(payload)
+    if v5:
+        body += len(props.pack()) if props is not None else 1
+    length_bytes = 1 + sum(body >= limit for limit in (128, 16384, 2097152))
+    return 1 + length_bytes + body
 
 
 class CommandRejected(Exception):
@@ -93,6 +132,7 @@ class _Link:
     connected: bool = False
     refused: str | None = None
     connected_at: float = 0.0
+    max_packet: int | None = None  # the broker's Maximum Packet Size (MQTT 5 CONNACK)
     last_id: int = 0
     inflight: dict[int, tuple[int, str]] = field(default_factory=dict)
     direct: dict[int, str] = field(default_factory=dict)
@@ -105,6 +145,7 @@ class _Link:
     def reset_session(self) -> None:
         self.connected = False
         self.refused = None
+        self.max_packet = None
         self.last_id = 0
         self.inflight.clear()
         self.direct.clear()
@@ -183,6 +224,22 @@ class Telemetry:
             self.outbox.discard_kind(KIND_SPARKPLUG)
         for link in self._links:
             link.delay = cfg.reconnect_min_s
+        self._report_outbox_damage()
+
+    def _report_outbox_damage(self) -> None:
+        """The `outbox` alarm: raised when a corrupt outbox was moved aside at open (what it
+        held is lost), cleared at a later start once no moved-aside copy is left."""
+        change = self.outbox.corrupt_alarm_change()
+        if change is None:
+            return
+        aside = self.outbox.moved_aside
+        message = (
+            f"outbox database {self.outbox.path} was corrupt: moved aside to {aside.name},"
+            " the messages queued in it were not sent; remove it once inspected"
+            if aside is not None else "no corrupt outbox copy left"
+        )
+        self.publish_alarm({"type": "outbox", "state": change, "scan_id": None,
+                            "severity": "warning", "message": message})
 
     @classmethod
     def from_config(cls, config: Config) -> Telemetry:
@@ -429,7 +486,7 @@ class Telemetry:
             link.bd_seq = self.outbox.next_bd_seq()
             will = sparkplug.SparkplugNode.death(link.bd_seq)
             client.will_set(self.spb_topics.node("NDEATH"), will, qos=1, retain=False)
-        client.on_connect = lambda c, u, f, rc, p: self._on_connect(link, rc)
+        client.on_connect = lambda c, u, f, rc, p: self._on_connect(link, rc, p)
         client.on_disconnect = lambda c, u, f, rc, p: self._on_disconnect(link, rc)
         client.on_publish = lambda c, u, mid, rc, p: self._on_publish(link, mid, rc)
         client.on_subscribe = lambda c, u, mid, rcs, p: self._on_subscribe(link, rcs)
@@ -487,7 +544,9 @@ class Telemetry:
 
     # ------------------------------------------------------------ callbacks
 
-    def _on_connect(self, link: _Link, reason: mqtt.ReasonCode) -> None:
+    def _on_connect(
+        self, link: _Link, reason: mqtt.ReasonCode, properties: Properties | None
+    ) -> None:
         if reason.is_failure:
             link.refused = f"broker refused the connection: {reason}"
             if reason.value in (0x86, 0x87, 4, 5):
@@ -498,6 +557,7 @@ class Telemetry:
             return
         link.connected = True
         link.connected_at = time.time()
+        link.max_packet = getattr(properties, "MaximumPacketSize", None)
         link.delay = self.cfg.reconnect_min_s
         client = link.client
         assert client is not None
@@ -582,9 +642,25 @@ class Telemetry:
             )
             link.refused = "primary host went offline"
 
+    def _reply_namespaces(self) -> list[str]:
+        """Where replies must not go: every topic the agent (or a sibling agent) publishes."""
+        spaces = [self.cfg.topic_prefix.rstrip("/") or self.base, sparkplug.NAMESPACE]
+        if self.cfg.homeassistant.enabled:
+            spaces.append(self.cfg.homeassistant.discovery_prefix.rstrip("/"))
+        return spaces
+
     def _handle_scan_command(self, msg: mqtt.MQTTMessage) -> None:
+        if msg.retain:
+            # the broker replays a retained command at every subscribe: it would scan at
+            # every start; the live delivery (retain flag clear) was already answered
+            log.warning(
+                "ignoring a retained scan request; clear it with an empty retained message",
+                topic=msg.topic,
+            )
+            return
         props = getattr(msg, "properties", None)
-        reply_topic = getattr(props, "ResponseTopic", None) or self.topic("cmd/scan/reply")
+        fallback = self.topic("cmd/scan/reply")
+        reply_topic = getattr(props, "ResponseTopic", None) or fallback
         correlation = getattr(props, "CorrelationData", None)
         request_id: str | None = None
         error: str | None = None
@@ -608,6 +684,10 @@ class Telemetry:
                         request = ScanRequest.model_validate(body)
                     except ValidationError as exc:
                         error = f"invalid request: {describe_errors(exc)}"
+        topic_problem = reply_topic_problem(reply_topic, self._reply_namespaces(), fallback)
+        if topic_problem is not None:  # answered where the requester can always listen
+            error = f"response topic {reply_topic[:200]!r} refused: {topic_problem}"
+            reply_topic = fallback
         if error is None:
             command = ScanCommand(request.request_id, reply_topic, correlation)
             callback = self._scan_callback
@@ -701,6 +781,7 @@ class Telemetry:
                 pending=pending,
                 dropped=self.outbox.counter("dropped"),
                 rejected=self.outbox.counter("rejected"),
+                dead_lettered=self.outbox.counter("dead_lettered"),
             ),
         )
 
@@ -712,9 +793,19 @@ class Telemetry:
         assert link.client is not None
         for row in self.outbox.pending(link.last_id, room, link.kinds):
             topic, payload, props = self._prepare(link, row)
-            info = link.client.publish(
-                topic, payload, qos=row.qos, retain=row.retain, properties=props
-            )
+            size = publish_packet_size(topic, payload, row.qos, props, self.cfg.protocol == "5")
+            if link.max_packet is not None and size > link.max_packet:
+                self._dead_letter(
+                    link, row, f"{size}-byte packet, the broker's maximum is {link.max_packet}"
+                )
+                continue
+            try:
+                info = link.client.publish(
+                    topic, payload, qos=row.qos, retain=row.retain, properties=props
+                )
+            except ValueError as exc:  # paho refuses it (e.g. a wildcard topic): it always will
+                self._dead_letter(link, row, f"paho refused it: {exc}")
+                continue
             if info.rc != mqtt.MQTT_ERR_SUCCESS:
                 break  # connection gone: the next session starts again from the oldest row
             link.last_id = row.id
@@ -724,6 +815,17 @@ class Telemetry:
                 link.acked_rows.append(row.id)
             else:
                 link.inflight[info.mid] = (row.id, row.topic)
+
+    def _dead_letter(self, link: _Link, row: Row, reason: str) -> None:
+        """Set aside a row that can never be published, so the rows behind it go out."""
+        self.outbox.dead_letter(row.id, reason)
+        link.last_id = row.id
+        log.error(
+            "message can never be published: dead-lettered", topic=row.topic[:200],
+            msg_id=row.msg_id, reason=reason, outbox=str(self.outbox.path),
+        )
+        with self._lock:
+            self._status_dirty = True
 
     def _prepare(self, link: _Link, row: Row) -> tuple[str, bytes, Properties | None]:
         payload = row.payload
