@@ -4,6 +4,7 @@ no command, refused message or damaged outbox may stop telemetry or crash the ag
 from __future__ import annotations
 
 import json
+import socket
 import sqlite3
 import time
 
@@ -168,6 +169,56 @@ def test_retained_command_does_not_scan_at_start(broker, telemetry_factory, coll
     assert accepted == ["live"]
     replies = [json.loads(m.payload) for m in col.on(FALLBACK)]
     assert [r["request_id"] for r in replies] == ["live"]
+
+
+def statuses(col) -> list[dict]:
+    return [json.loads(m.payload) for m in col.on(f"{BASE}/status")]
+
+
+def cut_the_connection(tel: Telemetry) -> None:
+    """Drop the agent's TCP connection without an MQTT DISCONNECT: the broker sends the will."""
+    tel._links[0].client.socket().shutdown(socket.SHUT_RDWR)
+
+
+def assert_offline_sorts_right(col) -> int:
+    """Each `offline` (the Last Will) has a seq above every message delivered before it, and
+    the `online` of the next session one above it; returns how many offlines there were."""
+    delivered = [json.loads(m.payload) for m in col.messages
+                 if m.topic.startswith(BASE) and m.payload.startswith(b"{")]
+    offlines = [i for i, d in enumerate(delivered)
+                if d["schema"] == "silo-status/1" and d["state"] == "offline"]
+    for i in offlines:
+        assert delivered[i]["seq"] > max(d["seq"] for d in delivered[:i])
+        next_online = next(d for d in delivered[i:] if d.get("state") == "online")
+        assert next_online["seq"] > delivered[i]["seq"]
+    return len(offlines)
+
+
+def test_last_will_sorts_after_the_session_and_before_the_next(agent):
+    tel, col, _ = agent
+    tel.publish_result(summary(f"{SILO}-before"))
+    col.wait_topic(f"{BASE}/volume")
+    cut_the_connection(tel)
+    col.wait_for(lambda ms: [s["state"] for s in statuses(col)][-2:] == ["offline", "online"])
+    assert assert_offline_sorts_right(col) == 1
+
+
+def test_last_will_seq_is_re_armed_before_the_session_reaches_it(
+    broker, telemetry_factory, collector_factory, monkeypatch
+):
+    monkeypatch.setattr("silo_agent.telemetry.mqtt.WILL_SEQ_HEADROOM", 40)
+    monkeypatch.setattr("silo_agent.telemetry.outbox.WILL_SEQ_HEADROOM", 40)
+    tel = telemetry_factory(broker)
+    col = collector_factory(broker, [f"{BASE}/#"])
+    col.wait_topic(f"{BASE}/status")
+    for i in range(30):  # 60 seq values from a will at seq 40: the session must re-arm
+        tel.publish_result(summary(f"{SILO}-{i:02d}"))
+    every_scan = {f"{SILO}-{i:02d}" for i in range(30)}
+    col.wait_for(lambda ms: every_scan == {
+        json.loads(m.payload)["scan_id"] for m in ms if m.topic == f"{BASE}/scan"})
+    cut_the_connection(tel)
+    col.wait_for(lambda ms: [s["state"] for s in statuses(col)][-2:] == ["offline", "online"])
+    assert assert_offline_sorts_right(col) >= 2
 
 
 # ---------------------------------------------------------------- a damaged outbox

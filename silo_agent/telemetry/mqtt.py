@@ -37,7 +37,7 @@ from silo_agent.config import Config, ConfigError, MqttConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
-from silo_agent.telemetry.outbox import Outbox, OutboxLimits, Row
+from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits, Row
 from silo_agent.telemetry.payloads import (
     ALARM_TYPES,
     MAX_COMMAND_BYTES,
@@ -133,6 +133,7 @@ class _Link:
     refused: str | None = None
     connected_at: float = 0.0
     max_packet: int | None = None  # the broker's Maximum Packet Size (MQTT 5 CONNACK)
+    will_seq: int = 0  # seq of the Last Will of the JSON link, above all the session sends
     last_id: int = 0
     inflight: dict[int, tuple[int, str]] = field(default_factory=dict)
     direct: dict[int, str] = field(default_factory=dict)
@@ -480,7 +481,8 @@ class Telemetry:
                 keyfile_password=self.key_password,
             )
         if link.name == "json":
-            will = self._status_payload("offline", self.outbox.next_envelope()).to_bytes()
+            link.will_seq = self.outbox.will_seq()
+            will = self._status_payload("offline", Envelope.new(link.will_seq)).to_bytes()
             client.will_set(self.topic("status"), will, qos=1, retain=True)
         else:
             link.bd_seq = self.outbox.next_bd_seq()
@@ -523,6 +525,8 @@ class Telemetry:
         if client is not None:
             client.disconnect()
         was_connected = link.connected
+        if was_connected and link.name == "json":
+            self.outbox.pass_will()
         if was_connected:
             log.warning(
                 "connection to the broker lost", link=link.name, reason=reason,
@@ -714,6 +718,11 @@ class Telemetry:
     def _serve(self, link: _Link) -> None:
         """Per loop turn on a connected link: session messages, then outbox rows."""
         if link.name == "json":
+            if self.outbox.last_seq >= link.will_seq - WILL_SEQ_HEADROOM // 10:
+                # the session is about to use the seq of its own Last Will: a new session
+                # arms a higher one
+                link.refused = "re-arming the Last Will above the seq in use"
+                return
             with self._lock:
                 status_dirty, self._status_dirty = self._status_dirty, False
                 ha_dirty, self._ha_dirty = self._ha_dirty, False
@@ -851,11 +860,13 @@ class Telemetry:
     def _shutdown(self) -> None:
         """`stopped` on P/status and NDEATH, each waited for briefly, then disconnect."""
         waiting: list[tuple[_Link, int]] = []
+        stopped: tuple[_Link, int] | None = None
         for link in self._links:
             if link.client is None or not link.connected:
                 continue
             if link.name == "json":
-                waiting.append((link, self._publish_status(link, "stopped")))
+                stopped = (link, self._publish_status(link, "stopped"))
+                waiting.append(stopped)
             elif link.born:
                 death = sparkplug.SparkplugNode.death(link.bd_seq)
                 waiting.append(
@@ -868,6 +879,8 @@ class Telemetry:
                     link.client.loop(timeout=LOOP_TIMEOUT_S)
                     self._flush_acks(link)
             waiting = [(k, m) for k, m in waiting if m not in k.acked and k.client is not None]
+        if stopped is not None and stopped[1] in stopped[0].acked:
+            self.outbox.disarm_will()  # `stopped` is in; the clean disconnect drops the will
         for link in self._links:
             if link.client is not None:
                 link.client.disconnect()

@@ -65,6 +65,7 @@ CREATE TABLE IF NOT EXISTS dead_letter (
 """
 DEAD_LETTER_KEEP = 1000  # newest dead letters kept for inspection; the counter counts all
 SEQ_RESERVE = 1000  # seq values the state file reserves at a time (one fsync per block)
+WILL_SEQ_HEADROOM = 1_000_000  # seq values a session may use below its Last Will's seq
 
 
 @dataclass(frozen=True)
@@ -178,6 +179,7 @@ class Outbox:
                 for name in ("seq", "bd_seq"):
                     if self._state.get(name, 0) > self._counter(name):
                         self._bump(name, self._state[name] - self._counter(name))
+            self._pass_will()
             self._state = {"seq": max(self._state.get("seq", 0), self._counter("seq")),
                            "bd_seq": self._counter("bd_seq"),
                            "corrupt_alarm": self._state.get("corrupt_alarm", 0)}
@@ -239,6 +241,41 @@ class Outbox:
             self._state["seq"] = seq + SEQ_RESERVE
             self._write_state()
         return seq
+
+    def will_seq(self) -> int:
+        """The `seq` of the next session's Last Will: WILL_SEQ_HEADROOM above the current one,
+        so the `offline` status sorts after everything the session sends. Attempts that never
+        connected leave it armed, so it is reused while there is room below it."""
+        with self._tx():
+            seq, will = self._counter("seq"), self._counter("will_seq")
+            if will - seq < WILL_SEQ_HEADROOM // 2:
+                self._bump("will_seq", seq + WILL_SEQ_HEADROOM - will)
+                will = seq + WILL_SEQ_HEADROOM
+                if will > self._state["seq"]:  # a lost database must continue above it too
+                    self._state["seq"] = will
+                    self._write_state()
+            return will
+
+    def _pass_will(self) -> None:
+        gap = self._counter("will_seq") - self._counter("seq")
+        if gap > 0:
+            self._bump("seq", gap)
+
+    def pass_will(self) -> None:
+        """A session ended and the broker may have published its Last Will: what follows
+        must sort after it."""
+        with self._tx():
+            self._pass_will()
+
+    def disarm_will(self) -> None:
+        """A clean shutdown said `stopped`: no Last Will was sent, the next start need not
+        skip over it."""
+        with self._tx():
+            self._db.execute("DELETE FROM counters WHERE name = 'will_seq'")
+
+    @property
+    def last_seq(self) -> int:
+        return self.counter("seq")
 
     def next_envelope(self) -> Envelope:
         """A fresh envelope for a message that is sent directly (session state, not queued)."""
