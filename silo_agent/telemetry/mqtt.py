@@ -62,6 +62,11 @@ KIND_SPARKPLUG = "sparkplug"
 HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=1"
 LOOP_TIMEOUT_S = 0.01
 MAX_TOPIC_BYTES = 65535  # MQTT's two-byte string length
+# A row that was the oldest unacknowledged one when POISON_STRIKES sessions in a row ended
+# within POISON_SESSION_S of connecting is one the broker will not take (a limit it does not
+# announce, e.g. its maximum packet size under MQTT 3.1.1): it is dead-lettered.
+POISON_STRIKES = 3
+POISON_SESSION_S = 10.0
 
 
 def reply_topic_problem(topic: str, reserved: Iterable[str], allowed: str) -> str | None:
@@ -134,6 +139,7 @@ class _Link:
     connected_at: float = 0.0
     max_packet: int | None = None  # the broker's Maximum Packet Size (MQTT 5 CONNACK)
     will_seq: int = 0  # seq of the Last Will of the JSON link, above all the session sends
+    suspect: tuple[int, int] = (0, 0)  # (row id, short sessions in a row it ended as the head)
     last_id: int = 0
     inflight: dict[int, tuple[int, str]] = field(default_factory=dict)
     direct: dict[int, str] = field(default_factory=dict)
@@ -527,6 +533,8 @@ class Telemetry:
         was_connected = link.connected
         if was_connected and link.name == "json":
             self.outbox.pass_will()
+        if was_connected and link.refused is None:  # not a reconnect of our own choosing
+            self._strike_head_row(link)
         if was_connected:
             log.warning(
                 "connection to the broker lost", link=link.name, reason=reason,
@@ -535,6 +543,24 @@ class Telemetry:
             link.delay = self.cfg.reconnect_min_s
         link.reset_session()
         self._schedule_retry(link, reason, quiet=was_connected)
+
+    def _strike_head_row(self, link: _Link) -> None:
+        """Count a short session against its oldest unacknowledged row; dead-letter the row
+        after POISON_STRIKES in a row, so that it cannot hold up the outbox for ever."""
+        if not link.inflight or time.time() - link.connected_at > POISON_SESSION_S:
+            link.suspect = (0, 0)
+            return
+        head = min(row_id for row_id, _topic in link.inflight.values())
+        strikes = link.suspect[1] + 1 if link.suspect[0] == head else 1
+        link.suspect = (head, strikes)
+        if strikes >= POISON_STRIKES:
+            row = self.outbox.row(head)
+            if row is not None:
+                self._dead_letter(
+                    link, row, f"the broker closed the connection each time it was sent"
+                    f" ({strikes} sessions in a row)",
+                )
+            link.suspect = (0, 0)
 
     def _schedule_retry(self, link: _Link, reason: str, quiet: bool = False) -> None:
         wait = link.delay * random.uniform(0.8, 1.2)

@@ -366,11 +366,19 @@ class Outbox:
         if kinds is not None:
             where += f" AND kind IN ({', '.join('?' * len(kinds))})"
             args.extend(kinds)
+        return self._rows(f"{where} ORDER BY id LIMIT ?", (*args, limit))
+
+    def row(self, row_id: int) -> Row | None:
+        """One pending row, if it is still there."""
+        rows = self._rows("id = ?", (row_id,))
+        return rows[0] if rows else None
+
+    def _rows(self, condition: str, args: tuple) -> list[Row]:
         with self._lock:
             rows = self._db.execute(
                 "SELECT id, topic, payload, qos, retain, kind, msg_id, seq, correlation, created "
-                f"FROM messages WHERE {where} ORDER BY id LIMIT ?",
-                (*args, limit),
+                f"FROM messages WHERE {condition}",
+                args,
             ).fetchall()
         return [
             Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
