@@ -305,3 +305,20 @@ def test_corrupt_outbox_starts_the_agent_with_an_alarm(broker, tmp_path, collect
         assert min(s["seq"] for s in online) > seqs[-1]
     finally:
         tel.stop()
+
+
+def test_outbox_alarm_clears_once_the_corrupt_copy_is_removed(tmp_path):
+    path = tmp_path / "outbox.sqlite"
+    fill(path, 2)
+    path.write_bytes(b"garbage" * 100)
+    box = Outbox(path)
+    assert box.corrupt_alarm_change() == "raised"
+    box.close()
+    again = Outbox(path)  # the copy is still there: the alarm stays, nothing new is said
+    assert again.corrupt_alarm_change() is None
+    again.close()
+    box.moved_aside.unlink()
+    cleared = Outbox(path)
+    assert cleared.corrupt_alarm_change() == "cleared"
+    cleared.close()
+    assert Outbox(path).corrupt_alarm_change() is None

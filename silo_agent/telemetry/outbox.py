@@ -89,6 +89,13 @@ class Row:
     created: float
 
 
+def _to_row(r: tuple) -> Row:
+    """A Row from the columns id, topic, payload, qos, retain, kind, msg_id, seq, correlation,
+    created (in that order) of a SELECT."""
+    return Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
+               None if r[8] is None else bytes(r[8]), r[9])
+
+
 class Outbox:
     """Thread-safe: producers enqueue from any thread, the MQTT thread reads and acks."""
 
@@ -380,11 +387,7 @@ class Outbox:
                 f"FROM messages WHERE {condition}",
                 args,
             ).fetchall()
-        return [
-            Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
-                None if r[8] is None else bytes(r[8]), r[9])
-            for r in rows
-        ]
+        return [_to_row(r) for r in rows]
 
     def ack(self, row_ids: list[int]) -> None:
         """The broker has these messages: forget them (one transaction)."""
@@ -423,11 +426,7 @@ class Outbox:
                 "SELECT id, topic, payload, qos, retain, kind, msg_id, seq, correlation, created,"
                 " reason FROM dead_letter ORDER BY id"
             ).fetchall()
-        return [
-            (Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
-                 None if r[8] is None else bytes(r[8]), r[9]), r[10])
-            for r in rows
-        ]
+        return [(_to_row(r), r[10]) for r in rows]
 
     def discard_kind(self, kind: str) -> None:
         """Forget pending messages of a kind that is no longer sent (not counted as drops)."""
