@@ -62,9 +62,10 @@ KIND_SPARKPLUG = "sparkplug"
 HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=1"
 LOOP_TIMEOUT_S = 0.01
 MAX_TOPIC_BYTES = 65535  # MQTT's two-byte string length
-# A row that was the oldest unacknowledged one when POISON_STRIKES sessions in a row ended
-# within POISON_SESSION_S of connecting is one the broker will not take (a limit it does not
-# announce, e.g. its maximum packet size under MQTT 3.1.1): it is dead-lettered.
+# After a session that ended within POISON_SESSION_S of connecting with messages unacknowledged,
+# the next sessions send one message at a time ("probing"); a message that was the one in
+# flight when POISON_STRIKES probing sessions in a row ended is one the broker will not take
+# (a limit it does not announce, e.g. its maximum packet size under MQTT 3.1.1): dead-lettered.
 POISON_STRIKES = 3
 POISON_SESSION_S = 10.0
 
@@ -139,7 +140,8 @@ class _Link:
     connected_at: float = 0.0
     max_packet: int | None = None  # the broker's Maximum Packet Size (MQTT 5 CONNACK)
     will_seq: int = 0  # seq of the Last Will of the JSON link, above all the session sends
-    suspect: tuple[int, int] = (0, 0)  # (row id, short sessions in a row it ended as the head)
+    probing: bool = False  # one message in flight at a time, to find one the broker drops us over
+    suspect: tuple[int, int] = (0, 0)  # (row id, probing sessions in a row it ended in flight)
     last_id: int = 0
     inflight: dict[int, tuple[int, str]] = field(default_factory=dict)
     direct: dict[int, str] = field(default_factory=dict)
@@ -545,22 +547,26 @@ class Telemetry:
         self._schedule_retry(link, reason, quiet=was_connected)
 
     def _strike_head_row(self, link: _Link) -> None:
-        """Count a short session against its oldest unacknowledged row; dead-letter the row
-        after POISON_STRIKES in a row, so that it cannot hold up the outbox for ever."""
-        if not link.inflight or time.time() - link.connected_at > POISON_SESSION_S:
-            link.suspect = (0, 0)
+        """After a short session with messages unacknowledged, probe: send one at a time.
+        A message that was the one in flight when POISON_STRIKES probing sessions in a row
+        ended is dead-lettered, so that it cannot hold up the outbox for ever."""
+        short = time.time() - link.connected_at <= POISON_SESSION_S
+        if not link.inflight or not short:
+            link.probing, link.suspect = False, (0, 0)
             return
-        head = min(row_id for row_id, _topic in link.inflight.values())
-        strikes = link.suspect[1] + 1 if link.suspect[0] == head else 1
-        link.suspect = (head, strikes)
-        if strikes >= POISON_STRIKES:
-            row = self.outbox.row(head)
-            if row is not None:
-                self._dead_letter(
-                    link, row, f"the broker closed the connection each time it was sent"
-                    f" ({strikes} sessions in a row)",
-                )
-            link.suspect = (0, 0)
+        if link.probing:
+            head = min(row_id for row_id, _topic in link.inflight.values())
+            strikes = link.suspect[1] + 1 if link.suspect[0] == head else 1
+            link.suspect = (head, strikes)
+            if strikes >= POISON_STRIKES:
+                row = self.outbox.row(head)
+                if row is not None:
+                    self._dead_letter(
+                        link, row, f"the broker closed the connection each time it was sent"
+                        f" ({strikes} sessions in a row)",
+                    )
+                link.suspect = (0, 0)
+        link.probing = True
 
     def _schedule_retry(self, link: _Link, reason: str, quiet: bool = False) -> None:
         wait = link.delay * random.uniform(0.8, 1.2)
@@ -822,7 +828,9 @@ class Telemetry:
 
     def _pump(self, link: _Link) -> None:
         """Hand the next outbox rows to paho, keeping at most max_inflight unacknowledged."""
-        room = self.cfg.max_inflight - len(link.inflight)
+        if link.probing and time.time() - link.connected_at > POISON_SESSION_S:
+            link.probing, link.suspect = False, (0, 0)  # the link holds: full speed again
+        room = (1 if link.probing else self.cfg.max_inflight) - len(link.inflight)
         if room <= 0:
             return
         assert link.client is not None
