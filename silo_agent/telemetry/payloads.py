@@ -80,6 +80,10 @@ class OutboxState(_Model):
     pending: int = Field(ge=0, description="messages waiting for a broker acknowledgement")
     dropped: int = Field(ge=0, description="messages dropped by the outbox bounds, ever")
     rejected: int = Field(ge=0, description="messages the broker refused (e.g. ACL), ever")
+    dead_lettered: int = Field(
+        ge=0, description="messages that could never be published (e.g. over the broker's"
+        " maximum packet size), set aside in the outbox's dead_letter table, ever",
+    )
 
 
 class _Payload(_Model):
