@@ -14,10 +14,10 @@ import json
 from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import structlog
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from silo_agent import __version__
 from silo_agent.audit import INPUTS, RESULT, AuditCache
@@ -38,6 +38,8 @@ if TYPE_CHECKING:
     from silo_agent.scan import CameraCloud
 
 log = structlog.get_logger(__name__)
+
+Model = TypeVar("Model", bound=BaseModel)
 
 CONFIG_KEY = "config"  # scan.json: the config snapshot the scan was taken and processed with
 
@@ -81,14 +83,20 @@ def analysis_of(scan: Scan) -> Analysis:
     settings and site, the detection and calibration of its config snapshot (defaults for a
     scan without one, e.g. a simulated scan)."""
     snapshot = scan.extra.get(CONFIG_KEY) or {}
-    source = f"{scan.scan_id}/{MANIFEST}"
+    manifest = f"{scan.scan_id}/{MANIFEST}"
+    settings = _validated(ReconstructionConfig, scan.reconstruction, f"{manifest}: reconstruction")
+    detection = _validated(DetectionConfig, snapshot.get("detection") or {},
+                           f"{manifest}: config.detection")  # fmt: skip
+    calibration = _validated(CalibrationConfig, snapshot.get("calibration") or {},
+                             f"{manifest}: config.calibration")  # fmt: skip
+    return Analysis(settings, detection, scan.site, calibration)
+
+
+def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
     try:
-        settings = ReconstructionConfig.model_validate(scan.reconstruction)
-        detection = DetectionConfig.model_validate(snapshot.get("detection") or {})
-        calibration = CalibrationConfig.model_validate(snapshot.get("calibration") or {})
+        return model.model_validate(data)
     except ValidationError as exc:
         raise ScanError(describe_validation_error(exc, source).splitlines()[0]) from None
-    return Analysis(settings, detection, scan.site, calibration)
 
 
 def overridden(analysis: Analysis, config: Config | None, grid_step_m: float | None = None,

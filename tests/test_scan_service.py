@@ -63,3 +63,13 @@ def test_daemon_scan_with_refine_replays_identical(
     directory = tmp_path / "scans" / scan_id
     assert "refined" in json.loads((directory / "result.json").read_text())["parameters"]
     assert "replay identical" in _replay(directory, capsys)
+
+
+def test_a_bad_config_snapshot_in_a_scan_is_one_line_naming_the_key(
+        scan_dir: Path, capsys: pytest.CaptureFixture) -> None:  # fmt: skip
+    manifest = json.loads((scan_dir / "scan.json").read_text())
+    manifest["config"] = {"calibration": {"refine": "sometimes"}}
+    (scan_dir / "scan.json").write_text(json.dumps(manifest))
+    assert main(["process", str(scan_dir)]) == 65
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "scan.json: config.calibration: refine" in err
