@@ -23,7 +23,8 @@ import structlog
 from silo_agent.audit import AuditCache
 from silo_agent.config import Config, ConfigError, load_config
 from silo_agent.metrics import Metrics
-from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
+from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
+from silo_agent.scan_service import new_scan_id
 from silo_agent.sdnotify import Notifier
 from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand, Telemetry
 

@@ -59,7 +59,7 @@ log = structlog.get_logger(__name__)
 KIND_JSON = "json"
 KIND_BINARY = "binary"
 KIND_SPARKPLUG = "sparkplug"
-HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=1"
+HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=2"
 LOOP_TIMEOUT_S = 0.01
 MAX_TOPIC_BYTES = 65535  # MQTT's two-byte string length
 # After a session that ended within POISON_SESSION_S of connecting with messages unacknowledged,
