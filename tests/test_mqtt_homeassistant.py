@@ -32,7 +32,7 @@ def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory,
     assert (volume["p"], volume["device_class"], volume["state_class"],
             volume["unit_of_measurement"]) == ("sensor", "volume_storage", "measurement", "m³")
     assert volume["state_topic"] == f"{BASE}/volume"
-    assert cmps["mass"]["unit_of_measurement"] == "t" and cmps["mass"]["device_class"] == "weight"
+    assert cmps["mass"]["unit_of_measurement"] == "kg" and cmps["mass"]["device_class"] == "weight"
     assert {f"alarm_{t}" for t in ALARM_TYPES} <= set(cmps)
     assert all(cmps[f"alarm_{t}"]["p"] == "binary_sensor" for t in ALARM_TYPES)
     assert len({c["unique_id"] for c in cmps.values()}) == len(cmps)
@@ -43,6 +43,7 @@ def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory,
                        "scan_id": summary()["scan_id"]})
     vol = col.wait_topic(f"{BASE}/volume")[0].payload
     assert render(volume["value_template"], vol) == "12.345"
+    assert render(cmps["mass"]["value_template"], vol) == "9506.0"  # mass_t 9.506 t, in kg
     assert render(cmps["coverage"]["value_template"], vol) == "87.0"
     assert render(cmps["level_max"]["value_template"], vol) == "1.4"
     alarm = col.wait_topic(f"{BASE}/alarm/collapse")[0].payload
