@@ -28,6 +28,7 @@ from silo_agent.metrics import Metrics
 from silo_agent.reconstruct import Result, site_from_config
 from silo_agent.scan import Scan, ScanError
 from silo_agent.telemetry.mqtt import Telemetry
+from silo_agent.telemetry.sparkplug import iso_to_ms
 
 log = structlog.get_logger(__name__)
 
@@ -46,11 +47,6 @@ class Outcome:
     summary: dict[str, Any] | None = None
     directory: Path | None = None
     events: list[dict[str, Any]] = field(default_factory=list)
-
-
-def iso_seconds(moment: str) -> float:
-    """Unix seconds of an RFC 3339 time as the summaries carry it (`...Z`)."""
-    return datetime.fromisoformat(moment.replace("Z", "+00:00")).timestamp()
 
 
 def new_scan_id(config: Config, started: datetime, taken: set[str]) -> str:
@@ -300,7 +296,7 @@ class Pipeline:
     def _count(self, outcome: str, summary: dict[str, Any]) -> None:
         m = self.metrics
         m.scans.labels(outcome).inc()
-        captured = iso_seconds(summary["captured_at"])
+        captured = iso_to_ms(summary["captured_at"]) / 1000.0
         m.last_scan.set(captured)
         if outcome != "failed":
             m.coverage.set(summary["coverage"])

@@ -193,3 +193,18 @@ def test_every_alarm_state_is_retained_at_start_and_sent_again_when_ha_comes_onl
 
     col.client.publish("homeassistant/status", b"online", qos=1)
     col.wait_for(lambda ms: all(sum(m.topic == t for m in ms) >= 2 for t in topics))
+
+
+def test_no_discovery_without_home_assistant_even_for_a_new_alarm_type(
+        broker, telemetry_factory, collector_factory):  # fmt: skip
+    col = collector_factory(broker, ["homeassistant/#", f"{BASE}/#"])
+    tel = telemetry_factory(broker)
+    tel.restore_alarms({"silo_door": {"type": "silo_door", "state": "raised",
+                                      "severity": "warning", "scan_id": None}})  # fmt: skip
+    tel.publish_alarm({"type": "hopper", "state": "raised", "severity": "warning",
+                       "scan_id": None})  # fmt: skip
+    col.wait_topic(f"{BASE}/alarm/hopper")
+    col.wait_topic(f"{BASE}/alarm/silo_door")
+    col.publish(f"{BASE}/cmd/scan", b"{}")  # a round trip through the agent, then look
+    col.wait_topic(f"{BASE}/cmd/scan/reply")
+    assert not [m for m in col.messages if m.topic.startswith("homeassistant/")]

@@ -670,7 +670,7 @@ class Telemetry:
                 alarms_dirty, self._alarms_dirty = self._alarms_dirty, False
             if status_dirty:
                 self._publish_status(link, "online")
-            if ha_dirty:
+            if ha_dirty and self.cfg.homeassistant.enabled:
                 self._publish_discovery(link)
             if alarms_dirty:
                 self._publish_alarm_states(link)
