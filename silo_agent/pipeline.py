@@ -18,7 +18,7 @@ from typing import Any
 
 import structlog
 
-from silo_agent.alarms import DETECTORS, AlarmState, Inputs, evaluate
+from silo_agent.alarms import AlarmState, Inputs, clear_switched_off, evaluate
 from silo_agent.audit import AuditCache, dump_json, is_disk_full, write_atomic
 from silo_agent.calibrate import gravity_angles
 from silo_agent.capture import CameraFailure, capture_all
@@ -36,6 +36,7 @@ from silo_agent.scan_service import (
     summarise,
 )
 from silo_agent.telemetry.mqtt import Telemetry
+from silo_agent.telemetry.sparkplug import iso_to_ms
 
 log = structlog.get_logger(__name__)
 
@@ -200,7 +201,7 @@ class Pipeline:
         lap("publish", t)
         self.cache.enforce(self.protected())
         outcome = "ok" if result.valid else "invalid"
-        self._count(outcome, result)
+        self._count(outcome, summary)
         log.info("scan finished", scan_id=scan_id, outcome=outcome, volume_m3=result.volume_m3,
                  coverage=round(result.coverage, 4), alarms=[
                      f"{e['type']}:{e['state']}" for e in events])  # fmt: skip
@@ -242,7 +243,7 @@ class Pipeline:
                 self.telemetry.publish_alarm(event)
         except Exception:
             log.exception("cannot queue the failure report", scan_id=scan_id)
-        self._count("failed", None)
+        self._count("failed", summary)
         log.error("scan failed", scan_id=scan_id, reason=reason)
         return Outcome(scan_id, "failed", reason, summary, None, events)
 
@@ -254,14 +255,29 @@ class Pipeline:
             log.warning("alarm", **{k: v for k, v in event.items() if k != "message"},
                         text=event["message"])
 
-    def _count(self, outcome: str, result: Result | None) -> None:
+    def _count(self, outcome: str, summary: dict[str, Any]) -> None:
         m = self.metrics
         m.scans.labels(outcome).inc()
-        if result is not None:
-            m.coverage.set(result.coverage)
-            if result.valid and result.volume_m3 is not None:
-                m.volume.set(result.volume_m3)
-        for kind in self.state.active:
-            m.alarm_active.labels(kind).set(1)
-        for kind in set(DETECTORS) - set(self.state.active):
-            m.alarm_active.labels(kind).set(0)
+        captured = iso_to_ms(summary["captured_at"]) / 1000.0
+        m.last_scan.set(captured)
+        if outcome != "failed":
+            m.coverage.set(summary["coverage"])
+        if summary["valid"] and summary.get("volume_m3") is not None:
+            m.volume.set(summary["volume_m3"])
+            m.last_valid_scan.set(captured)
+            if summary.get("mass_t") is not None:
+                m.mass.set(summary["mass_t"] * 1000.0)
+        m.set_alarms(self.state.active)
+
+    def clear_switched_off_alarms(self) -> None:
+        """At start and after a reload: clear, with the usual `cleared` event, every raised
+        alarm whose detector the config now switches off; it would never judge again."""
+        events, self.state = clear_switched_off(self.state, self.config.alarms, None)
+        if not events:
+            return
+        self._save_state()
+        for event in events:
+            self.telemetry.publish_alarm(event)
+            log.info("alarm cleared, its detector is switched off", type=event["type"],
+                     reason=event["message"])
+        self.metrics.set_alarms(self.state.active)

@@ -21,7 +21,7 @@ import random
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +33,7 @@ from paho.mqtt.properties import Properties
 from pydantic import ValidationError
 
 from silo_agent import __version__
-from silo_agent.config import Config, ConfigError, MqttConfig
+from silo_agent.config import Config, ConfigError, MqttConfig, stale_after_s
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
@@ -50,6 +50,7 @@ from silo_agent.telemetry.payloads import (
     alarm_payload,
     check_summary,
     describe_errors,
+    idle_alarm,
     scan_payload,
     volume_payload,
 )
@@ -188,8 +189,11 @@ class Telemetry:
         camera_serials: Iterable[str] = (),
         *,
         version: str = __version__,
+        expire_after_s: int | None = None,
     ) -> None:
+        """`expire_after_s`: how long HA keeps showing a reading without a new one."""
         self.cfg = cfg
+        self.expire_after_s = expire_after_s
         self.silo_id = silo_id
         self.version = version
         self.base = f"{cfg.topic_prefix}/{silo_id}"
@@ -215,7 +219,9 @@ class Telemetry:
         }
         self._last_scan_id: str | None = None
         self._alarm_types: list[str] = list(ALARM_TYPES)
+        self._alarm_states: dict[str, dict] = {t: idle_alarm(t) for t in ALARM_TYPES}
         self._status_dirty = False
+        self._alarms_dirty = False
         self._ha_dirty = False
         self._rebirth = False
         self._host_online = False
@@ -252,7 +258,8 @@ class Telemetry:
 
     @classmethod
     def from_config(cls, config: Config) -> Telemetry:
-        return cls(config.mqtt, config.silo.id, [c.serial for c in config.cameras])
+        return cls(config.mqtt, config.silo.id, [c.serial for c in config.cameras],
+                   expire_after_s=stale_after_s(config.schedule, config.silo.timezone))
 
     # ------------------------------------------------------------ topics
 
@@ -300,19 +307,40 @@ class Telemetry:
     def publish_alarm(self, event: dict) -> Envelope:
         """Queue an alarm event on `P/alarm` and the current state on `P/alarm/<type>`."""
         alarm_payload(Envelope.new(1), event)  # validate before anything is committed
+        with self._lock:  # before the queue: a state snapshot must never be older than it
+            self._alarm_states[event["type"]] = dict(event)
+            if event["type"] not in self._alarm_types:
+                self._alarm_types.append(event["type"])
+                self._ha_dirty = True
         env = self._enqueue_json("alarm", lambda e: alarm_payload(e, event).to_bytes())
         self._enqueue_json(
             f"alarm/{event['type']}", lambda e: alarm_payload(e, event).to_bytes(), retain=True
         )
-        with self._lock:
-            if event["type"] not in self._alarm_types:
-                self._alarm_types.append(event["type"])
-                self._ha_dirty = True
         if self.spb.enabled:
             with self._lock:
                 raw, new_metric = self.spb_node.data_from_alarm(event)
             self._enqueue_sparkplug(raw, new_metric)
         return env
+
+    def restore_alarms(self, active: Mapping[str, Mapping]) -> None:
+        """The raised alarms persisted by the last run (type -> its `raised` event): every
+        birth and state snapshot from now on carries them instead of `cleared`."""
+        with self._lock:
+            for alarm_type, event in active.items():
+                self._alarm_states[alarm_type] = dict(event)
+                if alarm_type not in self._alarm_types:
+                    self._alarm_types.append(alarm_type)
+                    self._ha_dirty = True
+            self.spb_node.restore_alarms(active)
+            self._alarms_dirty = True
+            self._rebirth = True
+
+    def set_expire_after(self, seconds: int | None) -> None:
+        """A new schedule, a new staleness limit: HA gets the discovery config again."""
+        with self._lock:
+            if seconds != self.expire_after_s:
+                self.expire_after_s = seconds
+                self._ha_dirty = self.cfg.homeassistant.enabled
 
     def set_status(
         self,
@@ -606,6 +634,7 @@ class Telemetry:
             client.subscribe(subs)
             with self._lock:
                 self._status_dirty = True
+                self._alarms_dirty = True
                 self._ha_dirty = self.cfg.homeassistant.enabled
         else:
             subs = [(self.spb_topics.node("NCMD"), 0)]
@@ -648,6 +677,7 @@ class Telemetry:
             if msg.payload.strip() == b"online":
                 with self._lock:
                     self._ha_dirty = True
+                    self._alarms_dirty = True
         elif msg.topic == self.spb_topics.node("NCMD"):
             if sparkplug.is_rebirth_request(msg.payload):
                 log.info("Sparkplug rebirth requested")
@@ -758,10 +788,13 @@ class Telemetry:
             with self._lock:
                 status_dirty, self._status_dirty = self._status_dirty, False
                 ha_dirty, self._ha_dirty = self._ha_dirty, False
+                alarms_dirty, self._alarms_dirty = self._alarms_dirty, False
             if status_dirty:
                 self._publish_status(link, "online")
-            if ha_dirty:
+            if ha_dirty and self.cfg.homeassistant.enabled:
                 self._publish_discovery(link)
+            if alarms_dirty:
+                self._publish_alarm_states(link)
         else:
             with self._lock:
                 rebirth, self._rebirth = self._rebirth, False
@@ -787,13 +820,22 @@ class Telemetry:
         payload = self._status_payload(state, self.outbox.next_envelope()).to_bytes()
         return self._direct(link, self.topic("status"), payload, retain=True)
 
+    def _publish_alarm_states(self, link: _Link) -> None:
+        """The current state of every alarm type, retained, so a fresh subscriber (HA) never
+        shows an alarm as unknown; the outbox sends later changes after these."""
+        with self._lock:
+            states = [dict(e) for e in self._alarm_states.values()]
+        for event in states:
+            payload = alarm_payload(self.outbox.next_envelope(), event).to_bytes()
+            self._direct(link, self.topic(f"alarm/{event['type']}"), payload, retain=True)
+
     def _publish_discovery(self, link: _Link) -> None:
         ha = self.cfg.homeassistant
         with self._lock:
             alarm_types = list(self._alarm_types)
         topic, payload = homeassistant.discovery_config(
             discovery_prefix=ha.discovery_prefix, base_topic=self.base, silo_id=self.silo_id,
-            version=self.version, alarm_types=alarm_types,
+            version=self.version, alarm_types=alarm_types, expire_after_s=self.expire_after_s,
         )
         self._direct(link, topic, payload, retain=True)
         log.info("Home Assistant discovery published", topic=topic)

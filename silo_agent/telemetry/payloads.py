@@ -252,6 +252,12 @@ def scan_payload(env: Envelope, summary: dict) -> ScanPayload:
     )
 
 
+def idle_alarm(alarm_type: str) -> dict:
+    """The state body of an alarm type that is not raised (nothing raised it yet)."""
+    return {"type": alarm_type, "state": "cleared", "severity": "info", "scan_id": None,
+            "message": "not raised"}
+
+
 def alarm_payload(env: Envelope, event: dict) -> AlarmPayload:
     """An alarm event dict (alarms.py) with the envelope added."""
     return AlarmPayload(**env.model_dump(), **event)
