@@ -21,7 +21,7 @@ from zoneinfo import ZoneInfo
 import structlog
 
 from silo_agent.audit import AuditCache
-from silo_agent.config import Config, ConfigError, load_config
+from silo_agent.config import Config, ConfigError, config_warnings, load_config
 from silo_agent.metrics import Metrics
 from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
 from silo_agent.sdnotify import Notifier
@@ -66,7 +66,7 @@ class Agent:
         self.notifier = notifier or Notifier.from_env()
         self.metrics = Metrics()
         self.telemetry = Telemetry.from_config(config)
-        self.cache = AuditCache(config.audit)
+        self.cache = AuditCache(config.audit, config.silo.id)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -242,6 +242,8 @@ class Agent:
             log.warning("config reloaded; [mqtt] and silo.id changes need a restart")
         if new.metrics != self.config.metrics:
             log.warning("config reloaded; [metrics] changes need a restart")
+        for warning in config_warnings(new):
+            log.warning("config", path=str(self.config_path), warning=warning)
         with self._lock:
             self.config = new
             self.pipeline.config = new
@@ -265,6 +267,8 @@ class Agent:
 
     def _serve(self) -> int:
         config = self.config
+        for warning in config_warnings(config):
+            log.warning("config", path=str(self.config_path), warning=warning)
         self.cache.directory.mkdir(parents=True, exist_ok=True)
         self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
         self.metrics.serve(config.metrics)

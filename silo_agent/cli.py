@@ -1,8 +1,8 @@
 """`silo-agent` command line. Each subcommand lives in a small function; heavy imports stay inside
 them so that `process` pays only for what it uses.
 
-Exit status: 0 success, 1 a failed operation, 2 usage, 65 bad input data (EX_DATAERR),
-78 bad configuration (EX_CONFIG).
+Exit status (silo_agent/exits.py): 0 success, 1 a failed operation, 2 usage, 65 bad input
+data (EX_DATAERR), 78 bad configuration (EX_CONFIG); a bad file never ends in a traceback.
 """
 
 from __future__ import annotations
@@ -16,14 +16,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from silo_agent import __version__
-from silo_agent.config import EX_CONFIG, Config, ConfigError, load_config
+from silo_agent.config import Config, ConfigError, config_warnings, load_config
+from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
+from silo_agent.exits import DATA_ERROR as EX_DATAERR
+from silo_agent.exits import INTERRUPTED
 
 if TYPE_CHECKING:
     from silo_agent.capture import CameraFailure
     from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud, Scan
-
-EX_DATAERR = 65
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -38,6 +39,8 @@ def _fail(message: str, status: int) -> int:
 
 def cmd_check_config(args: argparse.Namespace) -> int:
     config = load_config(args.file)
+    for warning in config_warnings(config):
+        print(f"silo-agent: warning: {args.file}: {warning}", file=sys.stderr)
     print(f"{args.file}: ok (silo {config.silo.id}, {len(config.cameras)} camera(s))")
     return 0
 
@@ -424,7 +427,8 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
         raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
     from silo_agent.audit import AuditCache
 
-    return AuditCache(load_config(config_path).audit).find(target)
+    config = load_config(config_path)
+    return AuditCache(config.audit, config.silo.id).find(target)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -452,7 +456,8 @@ def cmd_scans(args: argparse.Namespace) -> int:
     from silo_agent.audit import RESULT, AuditCache
     from silo_agent.scan import ScanError
 
-    cache = AuditCache(load_config(args.config).audit)
+    config = load_config(args.config)
+    cache = AuditCache(config.audit, config.silo.id)
     if args.action == "list":
         entries = cache.entries()
         for e in entries:
@@ -605,7 +610,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         return _fail(str(exc), EX_CONFIG)
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
+    except Exception as exc:  # bad input met where no command expected it: still one line
+        from silo_agent.limits import LimitExceeded
+        from silo_agent.scan import ScanError
+
+        if isinstance(exc, ScanError | LimitExceeded):
+            return _fail(str(exc), EX_DATAERR)
+        raise
 
 
 if __name__ == "__main__":

@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from silo_agent.limits import MAX_COORDINATE_M
+
 
 def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
     """Why `matrix` is not a rigid 4x4 camera->silo transform, or None if it is."""
@@ -13,6 +15,8 @@ def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str 
         return f"must be 4x4, got shape {matrix.shape}"
     if not np.all(np.isfinite(matrix)):
         return "contains NaN or infinity"
+    if np.any(np.abs(matrix[:3, 3]) > MAX_COORDINATE_M):
+        return f"translation beyond ±{MAX_COORDINATE_M:g} m: {matrix[:3, 3].tolist()}"
     if not np.allclose(matrix[3], [0, 0, 0, 1], atol=tolerance):
         return f"last row must be [0, 0, 0, 1], got {matrix[3].tolist()}"
     rotation = matrix[:3, :3]

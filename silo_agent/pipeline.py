@@ -208,6 +208,9 @@ class Pipeline:
         t = lap("reconstruct", t)
         check()
         summary = published_summary(result, scan, capture.failures, timings)
+        if directory is not None:  # kept before the alarms, so losing it raises `cache`
+            inputs_json = {"previous_piles": [p.to_json() for p in previous]}
+            cache_full = not self._keep_result(directory, summary, result, inputs_json)
         surface = summary.get("surface") or {}
         inputs = Inputs(
             scan_id=scan_id, heightmap=result.heightmap, volume_m3=result.volume_m3,
@@ -228,13 +231,6 @@ class Pipeline:
         self.state = state
         self._save_state()
         self._publish(summary, result, events)
-        if directory is not None:
-            inputs_json = {"previous_piles": [p.to_json() for p in previous]}
-            try:
-                self.cache.add_result(directory, summary, result.heightmap, inputs_json)
-            except OSError as exc:
-                log.error("cannot keep the result with the scan", scan_id=scan_id,
-                          error=str(exc))
         lap("publish", t)
         self.cache.enforce(self.protected())
         outcome = "ok" if result.valid else "invalid"
@@ -264,6 +260,23 @@ class Pipeline:
                 return None, True
         log.error("disk still full, scan published uncached", scan_id=scan.scan_id)
         return None, True
+
+    def _keep_result(self, directory: Path, summary: dict[str, Any], result: Result,
+                     inputs: dict[str, Any]) -> bool:
+        """result.json, the height map and inputs.json into the scan's directory; on a full
+        disk evict older scans and retry once. False if they could not all be kept."""
+        for attempt in range(2):
+            try:
+                self.cache.add_result(directory, summary, result.heightmap, inputs)
+                return True
+            except OSError as exc:
+                if not is_disk_full(exc) or attempt == 1:
+                    log.error("cannot keep the result with the scan", scan_id=directory.name,
+                              error=str(exc))
+                    return False
+                removed = self.cache.evict_for_space(self.protected() | {directory.name})
+                log.warning("disk full, evicted scans", removed=removed)
+        return False
 
     def _failed(self, scan_id: str, captured_at: str, reason: str,
                 failures: list[CameraFailure], timings: dict[str, float],
