@@ -265,17 +265,21 @@ class Pipeline:
                      inputs: dict[str, Any]) -> bool:
         """result.json, the height map and inputs.json into the scan's directory; on a full
         disk evict older scans and retry once. False if they could not all be kept."""
-        for attempt in range(2):
+        try:
+            self.cache.add_result(directory, summary, result.heightmap, inputs)
+            return True
+        except OSError as exc:
+            error = exc
+        if is_disk_full(error):
+            removed = self.cache.evict_for_space(self.protected() | {directory.name})
+            log.warning("disk full, evicted scans", removed=removed)
             try:
                 self.cache.add_result(directory, summary, result.heightmap, inputs)
                 return True
             except OSError as exc:
-                if not is_disk_full(exc) or attempt == 1:
-                    log.error("cannot keep the result with the scan", scan_id=directory.name,
-                              error=str(exc))
-                    return False
-                removed = self.cache.evict_for_space(self.protected() | {directory.name})
-                log.warning("disk full, evicted scans", removed=removed)
+                error = exc
+        log.error("cannot keep the result with the scan", scan_id=directory.name,
+                  error=str(error))
         return False
 
     def _failed(self, scan_id: str, captured_at: str, reason: str,
