@@ -233,7 +233,7 @@ class Agent:
     def _do_reload(self) -> None:
         """SIGHUP: take a new config if it is valid; a bad one is logged and ignored."""
         try:
-            new = load_config(self.config_path)
+            new = load_config(self.config_path, service=True)
         except ConfigError as exc:
             log.error("config reload rejected, keeping the running config",
                       path=str(self.config_path), error=str(exc))

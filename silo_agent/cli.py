@@ -38,7 +38,7 @@ def _fail(message: str, status: int) -> int:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    config = load_config(args.file)
+    config = load_config(args.file, service=True)
     for warning in config_warnings(config):
         print(f"silo-agent: warning: {args.file}: {warning}", file=sys.stderr)
     print(f"{args.file}: ok (silo {config.silo.id}, {len(config.cameras)} camera(s))")
@@ -386,7 +386,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from silo_agent.agent import Agent
 
-    config = load_config(args.config)  # a bad file: ConfigError -> 78 before anything starts
+    config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
     agent = Agent(args.config, config, max_scans=args.scans)
     status = agent.run()
     last = agent.last_outcome

@@ -3,8 +3,8 @@
 A bad file is rejected before anything starts, with the file, the key path and what was
 expected (`ConfigError`, exit status 78 = EX_CONFIG). Numbers are strict (TOML types already
 are): `true` or `"30"` where a number belongs is an error, an integer where a float belongs is
-fine. `load_config` also checks what the file points at (directories it must write, TLS files,
-the grid's size) so that `check-config` catches what would otherwise fail only once running.
+fine. For the service, `load_config` also checks what the file points at (directories it must
+write, TLS files) so that `check-config` catches what would otherwise fail only once running.
 """
 
 from __future__ import annotations
@@ -638,8 +638,10 @@ def config_warnings(config: Config) -> list[str]:
     return warnings
 
 
-def load_config(path: str | Path) -> Config:
-    """Read and validate a TOML config file, and what it points at."""
+def load_config(path: str | Path, *, service: bool = False) -> Config:
+    """Read and validate a TOML config file. `service`: also what the daemon will write and
+    read (`environment_problems`), for `run`, its reloads and `check-config`; offline commands
+    such as `process --config` need none of it."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -655,7 +657,7 @@ def load_config(path: str | Path) -> Config:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     config = parse_config(data, str(path))
-    problems = environment_problems(config)
+    problems = environment_problems(config) if service else []
     if problems:
         raise ConfigError("\n".join(f"{path}: {problem}" for problem in problems))
     return config

@@ -136,6 +136,13 @@ def test_bad_config_stops_run_with_78_before_anything_starts(tmp_path: Path, cas
     assert not (tmp_path / "outbox.sqlite").exists()
 
 
+def test_offline_process_does_not_need_the_services_directories(tmp_path: Path, scan_dir: Path):
+    config = BAD_CONFIGS["audit directory under a regular file"][0](tmp_path)
+    done = run_cli("process", str(scan_dir), "--config", str(config), "--json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["volume_m3"] > 0
+
+
 def test_integers_still_count_where_a_float_belongs(tmp_path: Path):
     config = _config(tmp_path, schedule={"interval_s": 60, "misfire_grace_s": 30})
     done = run_cli("check-config", str(config))
