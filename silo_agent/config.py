@@ -18,6 +18,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -43,6 +44,13 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+def _host_name(host: str) -> str:
+    if not host or any(c.isspace() for c in host):
+        raise ValueError(f"want a host name or IP address, got {host!r}")
+    return host
+
+
+HostName = Annotated[str, AfterValidator(_host_name)]
 Point2 = tuple[float, float]
 Matrix4 = tuple[
     tuple[float, float, float, float],
@@ -299,7 +307,7 @@ class HomeAssistantConfig(Strict):
 
 
 class MqttConfig(Strict):
-    host: str = Field(default="127.0.0.1", pattern=r"^\S+$", description="broker name or address")
+    host: HostName = Field(default="127.0.0.1", description="broker name or address")
     port: int = Field(default=1883, ge=1, le=65535)
     topic_prefix: str = Field(default="silo", pattern=r"^[^#+]+$")
     protocol: Literal["5", "3.1.1"] = "5"
@@ -395,7 +403,7 @@ class MetricsConfig(Strict):
     """Prometheus exposition (prometheus-client); off by default."""
 
     enabled: bool = False
-    host: str = Field(default="127.0.0.1", pattern=r"^\S+$", description="listen address")
+    host: HostName = Field(default="127.0.0.1", description="listen address")
     port: int = Field(default=9464, ge=1, le=65535)
 
 

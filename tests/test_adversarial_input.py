@@ -103,7 +103,7 @@ BAD_CONFIGS = {
         ["mqtt.tls.key_file", "is not a regular file"]),
     "empty broker host": (
         lambda t: _replace(_config(t), 'host = "127.0.0.1"', 'host = ""'),
-        ["mqtt.host", "pattern"]),
+        ["mqtt.host", "want a host name or IP address, got ''"]),
     "sim view that does not exist": (
         lambda t: _replace(_config(t), 'view = "A2"', 'view = "A9"'),
         ["cameras.0.view", "unknown view 'A9'"]),
