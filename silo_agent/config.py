@@ -10,7 +10,6 @@ write, TLS files) so that `check-config` catches what would otherwise fail only 
 from __future__ import annotations
 
 import json
-import math
 import tempfile
 import tomllib
 from pathlib import Path
@@ -29,7 +28,12 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from silo_agent.exits import CONFIG_ERROR
-from silo_agent.geometry import check_polygon, rigid_transform_problem, transform_from_euler
+from silo_agent.geometry import (
+    check_polygon,
+    grid_shape,
+    rigid_transform_problem,
+    transform_from_euler,
+)
 from silo_agent.limits import MAX_DURATION_S, MAX_GRID_CELLS
 
 EX_CONFIG = CONFIG_ERROR  # the name callers of load_config know it by
@@ -502,7 +506,8 @@ class Config(Strict):
 
     @model_validator(mode="after")
     def _grid_fits(self) -> Config:
-        cells = grid_cells(self.silo.region, self.reconstruction.grid_step_m)
+        rows, cols = grid_shape(np.asarray(self.silo.region), self.reconstruction.grid_step_m)
+        cells = rows * cols
         if cells > MAX_GRID_CELLS:
             raise PydanticCustomError(
                 "config_key",
@@ -532,14 +537,6 @@ class Config(Strict):
                          "known": ", ".join(serials)},
                     )
         return self
-
-
-def grid_cells(region: list[Point2] | np.ndarray, step: float) -> int:
-    """Cells of the grid of `step` over the region's bounding box (reconstruct.grid's shape)."""
-    region = np.asarray(region, dtype=float).reshape(-1, 2)
-    extent = region.max(axis=0) - region.min(axis=0)
-    cols, rows = (max(1, math.ceil(e / step - 1e-9)) for e in extent)
-    return cols * rows
 
 
 def describe_validation_error(exc: ValidationError, source: str) -> str:

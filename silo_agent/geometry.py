@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -25,6 +26,15 @@ def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str 
     if np.linalg.det(rotation) < 0:
         return "rotation part is a reflection (determinant -1)"
     return None
+
+
+def grid_shape(region: np.ndarray, step: float) -> tuple[int, int]:
+    """(rows, cols) of the grid of `step` cells over the region's bounding box (row = y)."""
+    region = np.asarray(region, dtype=float).reshape(-1, 2)
+    low, high = region.min(axis=0), region.max(axis=0)
+    cols = max(1, math.ceil((high[0] - low[0]) / step - 1e-9))
+    rows = max(1, math.ceil((high[1] - low[1]) / step - 1e-9))
+    return rows, cols
 
 
 def rotation_from_euler(rotate_deg: Sequence[float]) -> np.ndarray:
