@@ -454,7 +454,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_scans(args: argparse.Namespace) -> int:
     from silo_agent.audit import RESULT, AuditCache
-    from silo_agent.scan import ScanError
+    from silo_agent.scan import ScanError, read_manifest
 
     config = load_config(args.config)
     cache = AuditCache(config.audit, config.silo.id)
@@ -481,7 +481,7 @@ def cmd_scans(args: argparse.Namespace) -> int:
     except ScanError as exc:
         return _fail(str(exc), FAILURE)
     if args.action == "show":
-        manifest = json.loads((path / "scan.json").read_text(encoding="utf-8"))
+        manifest = read_manifest(path)  # bounded and checked, like any scan directory
         manifest.pop("config", None)
         report = {"scan_dir": str(path), "manifest": manifest}
         if (path / RESULT).is_file():
