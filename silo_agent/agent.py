@@ -21,7 +21,7 @@ from zoneinfo import ZoneInfo
 import structlog
 
 from silo_agent.audit import AuditCache
-from silo_agent.config import Config, ConfigError, load_config, stale_after_s
+from silo_agent.config import Config, ConfigError, config_warnings, load_config, stale_after_s
 from silo_agent.metrics import Metrics
 from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
 from silo_agent.scan_service import new_scan_id
@@ -67,7 +67,7 @@ class Agent:
         self.notifier = notifier or Notifier.from_env()
         self.metrics = Metrics()
         self.telemetry = Telemetry.from_config(config)
-        self.cache = AuditCache(config.audit)
+        self.cache = AuditCache(config.audit, config.silo.id)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
         self.telemetry.restore_alarms(self.pipeline.state.active)
         self.metrics.set_alarms(self.pipeline.state.active)
@@ -236,7 +236,7 @@ class Agent:
     def _do_reload(self) -> None:
         """SIGHUP: take a new config if it is valid; a bad one is logged and ignored."""
         try:
-            new = load_config(self.config_path)
+            new = load_config(self.config_path, service=True)
         except ConfigError as exc:
             log.error("config reload rejected, keeping the running config",
                       path=str(self.config_path), error=str(exc))
@@ -245,6 +245,8 @@ class Agent:
             log.warning("config reloaded; [mqtt] and silo.id changes need a restart")
         if new.metrics != self.config.metrics:
             log.warning("config reloaded; [metrics] changes need a restart")
+        for warning in config_warnings(new):
+            log.warning("config", path=str(self.config_path), warning=warning)
         with self._lock:
             self.config = new
             self.pipeline.config = new
@@ -270,6 +272,8 @@ class Agent:
 
     def _serve(self) -> int:
         config = self.config
+        for warning in config_warnings(config):
+            log.warning("config", path=str(self.config_path), warning=warning)
         self.cache.directory.mkdir(parents=True, exist_ok=True)
         self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
         self.metrics.serve(config.metrics)

@@ -245,7 +245,8 @@ def detect_coverage(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding 
 def detect_cache(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding:
     return Finding(
         inputs.cache_full, "critical",
-        "audit cache full: scan published without its raw clouds" if inputs.cache_full
+        "audit cache full or unwritable: scan published without its raw clouds, result or "
+        "height map kept" if inputs.cache_full
         else "audit cache writable",
     )
 

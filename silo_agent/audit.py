@@ -6,7 +6,10 @@ snapshot it was taken with, the software version and the SHA-256 of each cloud; 
 result (`result.json`), the height map (`heightmap.npz`) and what processing needed besides the
 scan (`inputs.json`: the previous piles that gave pile ids) are added atomically afterwards.
 `replay` processes a cached scan again with its own settings and compares with what was
-published. Retention removes the oldest scans first, never one an alarm baseline refers to.
+published. Retention removes the oldest scans first, never one an alarm baseline refers to,
+and only this silo's own scans: directories named like its scan ids (`<silo>-<UTC time>[-k]`,
+and the calibration scans `calibrate --capture` keeps) whose scan.json names this silo.
+Anything else in `audit.directory` (another silo's scans, `.git`, a note) is never touched.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import shutil
 import tarfile
 import tempfile
@@ -90,12 +94,20 @@ def _tree_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-class AuditCache:
-    """Scan directories under `audit.directory`, bounded by `max_bytes` and `max_age_days`."""
+def scan_id_pattern(silo_id: str) -> re.Pattern[str]:
+    """Names of the scan directories silo `silo_id` writes (pipeline.new_scan_id, calibrate)."""
+    return re.compile(rf"{re.escape(silo_id)}-\d{{8}}T\d{{6}}Z(-\d+)?(-calibration(-\d+of\d+)?)?")
 
-    def __init__(self, cfg: AuditConfig) -> None:
+
+class AuditCache:
+    """This silo's scan directories under `audit.directory`, bounded by `max_bytes` and
+    `max_age_days`."""
+
+    def __init__(self, cfg: AuditConfig, silo_id: str) -> None:
         self.cfg = cfg
         self.directory = Path(cfg.directory)
+        self.silo_id = silo_id
+        self._ours = scan_id_pattern(silo_id)
 
     # ------------------------------------------------------------ writing
 
@@ -148,17 +160,23 @@ class AuditCache:
     # ------------------------------------------------------------ reading
 
     def entries(self) -> list[Entry]:
-        """Cached scans, oldest first (staging directories and strays are not scans)."""
+        """This silo's cached scans, oldest first: a directory named like its scan ids whose
+        scan.json says this silo (staging directories, strays, other silos' are not)."""
         if not self.directory.is_dir():
             return []
         out = []
         for path in self.directory.iterdir():
-            if path.name.startswith(".") or not (path / MANIFEST).is_file():
+            if not self._ours.fullmatch(path.name) or path.is_symlink() or not path.is_dir():
                 continue
             try:
                 manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+                if manifest["silo_id"] != self.silo_id:
+                    continue
+            except (OSError, ValueError, KeyError, TypeError, RecursionError):
+                continue  # not a scan this agent can vouch for: never counted, never removed
+            try:
                 when = datetime.fromisoformat(manifest["captured_at"].replace("Z", "+00:00"))
-            except (OSError, ValueError, KeyError, TypeError):
+            except (ValueError, KeyError, TypeError, AttributeError):
                 when = datetime.fromtimestamp(path.stat().st_mtime, UTC)
             out.append(Entry(path.name, path, when, _tree_bytes(path)))
         return sorted(out, key=lambda e: (e.captured_at, e.scan_id))
@@ -229,11 +247,16 @@ class AuditCache:
         return [e.scan_id for e in candidates[:count]]
 
     def _clean_staging(self) -> None:
-        """Staging directories left by a crash mid-write."""
-        if self.directory.is_dir():
-            for path in self.directory.glob(".*"):
-                if path.is_dir():
-                    shutil.rmtree(path, ignore_errors=True)
+        """This silo's staging directories left by a crash mid-write (`.<scan id>.<random>`
+        of tempfile.mkdtemp in write_scan); other hidden entries are not ours."""
+        if not self.directory.is_dir():
+            return
+        for path in self.directory.glob(".*.*"):
+            scan_id = path.name[1:].rpartition(".")[0]
+            if self._ours.fullmatch(scan_id) and path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+                log.info("audit staging directory removed", path=str(path),
+                         reason="left by an interrupted scan write")
 
     # ------------------------------------------------------------ export
 

@@ -1,8 +1,8 @@
 """`silo-agent` command line. Each subcommand lives in a small function; heavy imports stay inside
 them so that `process` pays only for what it uses.
 
-Exit status: 0 success, 1 a failed operation, 2 usage, 65 bad input data (EX_DATAERR),
-78 bad configuration (EX_CONFIG).
+Exit status (silo_agent/exits.py): 0 success, 1 a failed operation, 2 usage, 65 bad input
+data (EX_DATAERR), 78 bad configuration (EX_CONFIG); a bad file never ends in a traceback.
 """
 
 from __future__ import annotations
@@ -16,13 +16,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from silo_agent import __version__
-from silo_agent.config import EX_CONFIG, Config, ConfigError, load_config
+from silo_agent.config import Config, ConfigError, config_warnings, load_config
+from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
+from silo_agent.exits import DATA_ERROR as EX_DATAERR
+from silo_agent.exits import FAILURE, INTERRUPTED, OK, USAGE
 
 if TYPE_CHECKING:
     from silo_agent.capture import CameraFailure
     from silo_agent.scan import CameraCloud, Scan
-
-EX_DATAERR = 65
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -36,9 +37,11 @@ def _fail(message: str, status: int) -> int:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    config = load_config(args.file)
+    config = load_config(args.file, service=True)
+    for warning in config_warnings(config):
+        print(f"silo-agent: warning: {args.file}: {warning}", file=sys.stderr)
     print(f"{args.file}: ok (silo {config.silo.id}, {len(config.cameras)} camera(s))")
-    return 0
+    return OK
 
 
 # ---------------------------------------------------------------- process
@@ -61,7 +64,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         print(json.dumps(summary, allow_nan=False))
     else:
         print(result.describe())
-    return 0
+    return OK
 
 
 # ---------------------------------------------------------------- cameras
@@ -73,7 +76,7 @@ def cmd_devices(args: argparse.Namespace) -> int:
     devices = list_devices()
     if not devices:
         print("no RealSense devices found")
-        return 1
+        return FAILURE
     for device in devices:
         print(
             f"{device.serial}  {device.name}  firmware {device.firmware or '?'}  "
@@ -85,7 +88,7 @@ def cmd_devices(args: argparse.Namespace) -> int:
                 "drop frames or fail; connect it to a USB 3 port or a powered USB 3 hub",
                 file=sys.stderr,
             )
-    return 0
+    return OK
 
 
 def _new_scan(
@@ -118,8 +121,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
     )
 
     config = load_config(args.config)
-    cache = AuditCache(config.audit.model_copy(update={"directory": args.out})
-                       if args.out else config.audit)  # fmt: skip
+    audit = config.audit.model_copy(update={"directory": args.out}) if args.out else config.audit
+    cache = AuditCache(audit, config.silo.id)
     started = datetime.now(UTC)
     clock = time.perf_counter()
     capture = capture_all(config)
@@ -127,13 +130,13 @@ def cmd_scan(args: argparse.Namespace) -> int:
     for failure in capture.failures:
         print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
     if not capture.clouds:
-        return _fail("no camera delivered a cloud; no scan written", 1)
+        return _fail("no camera delivered a cloud; no scan written", FAILURE)
     scan = new_scan(config, new_scan_id(config, started, cache.names()), started,
                     capture.clouds, capture.failures)  # fmt: skip
     try:  # audit first: the raw scan is kept even if processing fails
         directory = cache.write_scan(scan, scan.extra[CONFIG_KEY])
     except (ScanError, OSError) as exc:
-        return _fail(f"cannot write the scan: {exc}", 1)
+        return _fail(f"cannot write the scan: {exc}", FAILURE)
     previous = previous_piles(cache, scan.scan_id)
     clock = time.perf_counter()
     try:
@@ -145,13 +148,13 @@ def cmd_scan(args: argparse.Namespace) -> int:
     try:
         keep_result(directory, summary, result, previous)
     except OSError as exc:
-        return _fail(f"cannot keep the result with the scan in {directory}: {exc}", 1)
+        return _fail(f"cannot keep the result with the scan in {directory}: {exc}", FAILURE)
     if args.json:
         print(json.dumps({**summary, "scan_dir": str(directory)}, allow_nan=False))
     else:
         print(result.describe())
         print(f"scan written to {directory}" + (" (degraded)" if capture.degraded else ""))
-    return 0
+    return OK
 
 
 def _seconds(text: str) -> float:
@@ -171,7 +174,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     live = [camera for camera in config.cameras if camera.source == "realsense"]
     if not live:
-        return _fail(f"{args.config}: no live cameras (source = \"realsense\") to record", 1)
+        return _fail(f"{args.config}: no live cameras (source = \"realsense\") to record", FAILURE)
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
     for camera in live:  # one after another: several D455s streaming at once saturate USB
@@ -183,7 +186,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             failed += 1
             continue
         print(f"{camera.serial}: {frames} frames -> {path}")
-    return 1 if failed else 0
+    return FAILURE if failed else OK
 
 
 # ---------------------------------------------------------------- calibrate
@@ -204,10 +207,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     if args.captures is not None and args.scan:
-        return _fail("--captures goes with --capture (give --scan once per scan instead)", 2)
+        return _fail("--captures goes with --capture (give --scan once per scan instead)", USAGE)
     captures = 1 if args.captures is None else args.captures
     if captures < 1:
-        return _fail(f"--captures {captures}: must be at least 1", 2)
+        return _fail(f"--captures {captures}: must be at least 1", USAGE)
     if args.scan:
         scans, names = [], []
         for directory in args.scan:
@@ -228,7 +231,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                 print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
             if capture.failures or not capture.clouds:
                 return _fail("calibration needs every camera; "
-                             f"{len(capture.failures)} failed, no calibration done", 1)
+                             f"{len(capture.failures)} failed, no calibration done", FAILURE)
             scan = _new_scan(config, capture.clouds, capture.failures, started)
             suffix = "" if captures == 1 else f"-{number + 1}of{captures}"
             try:  # keep the calibration scan for audit, like any scan
@@ -250,13 +253,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                            site=site_from_config(config), start=start,
                            grid_step=config.reconstruction.grid_step_m)
     except CalibrationError as exc:
-        return _fail(f"{source}: {exc}", EX_DATAERR if isinstance(exc, SerialMismatch) else 1)
+        return _fail(f"{source}: {exc}", EX_DATAERR if isinstance(exc, SerialMismatch) else FAILURE)
     backup = None
     if args.write:
         try:
             backup = write_calibrated_config(args.config, result.extrinsics())
         except CalibrationError as exc:
-            return _fail(str(exc), 1)
+            return _fail(str(exc), FAILURE)
     if args.json:
         out = result.to_json()
         out["config_written"] = bool(args.write)
@@ -268,7 +271,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             print(f"{args.config}: extrinsics updated (previous file kept as {backup})")
         else:
             print("config not changed (use --write to update it)")
-    return 0
+    return OK
 
 
 # ---------------------------------------------------------------- simulate
@@ -315,11 +318,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         scan = simulate(scene, args.views, args.seed, args.calib_error, args.grid_step,
                         layout=args.layout, color=args.color, rig=rig)
     except ValueError as exc:  # a layout that does not fit the scene
-        return _fail(str(exc), 2)
+        return _fail(str(exc), USAGE)
     try:
         write_scan(scan, args.out)
     except ScanError as exc:
-        return _fail(str(exc), 1)
+        return _fail(str(exc), FAILURE)
     points = sum(len(c.points) for c in scan.cameras)
     print(f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
           f"{points} points, truth {scene.volume_m3:.4f} m³")
@@ -330,7 +333,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         for path in record_views(rig, views, args.seed, args.record, args.record_frames,
                                  args.color):
             print(f"{path}: {args.record_frames} depth frames")
-    return 0
+    return OK
 
 
 # ---------------------------------------------------------------- daemon and audit cache
@@ -339,7 +342,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from silo_agent.agent import Agent
 
-    config = load_config(args.config)  # a bad file: ConfigError -> 78 before anything starts
+    config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
     agent = Agent(args.config, config, max_scans=args.scans)
     status = agent.run()
     last = agent.last_outcome
@@ -380,7 +383,8 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
         raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
     from silo_agent.audit import AuditCache
 
-    return AuditCache(load_config(config_path).audit).find(target)
+    config = load_config(config_path)
+    return AuditCache(config.audit, config.silo.id).find(target)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -398,17 +402,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f"{directory.name}: replay DIFFERS from the published result:")
         for line in diff:
             print(f"  {line}")
-        return 1
+        return FAILURE
     print(f"{directory.name}: replay identical to the published result "
           f"(volume {again.get('volume_m3')} m³; timings not compared)")  # fmt: skip
-    return 0
+    return OK
 
 
 def cmd_scans(args: argparse.Namespace) -> int:
     from silo_agent.audit import RESULT, AuditCache
-    from silo_agent.scan import ScanError
+    from silo_agent.scan import ScanError, read_manifest
 
-    cache = AuditCache(load_config(args.config).audit)
+    config = load_config(args.config)
+    cache = AuditCache(config.audit, config.silo.id)
     if args.action == "list":
         entries = cache.entries()
         for e in entries:
@@ -424,24 +429,24 @@ def cmd_scans(args: argparse.Namespace) -> int:
         total = sum(e.bytes for e in entries)
         print(f"{len(entries)} scan(s), {total / 1e6:.2f} MB of {cache.cfg.max_bytes / 1e6:.0f} MB"
               f" in {cache.directory}")  # fmt: skip
-        return 0
+        return OK
     if args.scan_id is None:
-        return _fail(f"scans {args.action} needs a SCAN_ID", 2)
+        return _fail(f"scans {args.action} needs a SCAN_ID", USAGE)
     try:
         path = cache.find(args.scan_id)
     except ScanError as exc:
-        return _fail(str(exc), 1)
+        return _fail(str(exc), FAILURE)
     if args.action == "show":
-        manifest = json.loads((path / "scan.json").read_text(encoding="utf-8"))
+        manifest = read_manifest(path)  # bounded and checked, like any scan directory
         manifest.pop("config", None)
         report = {"scan_dir": str(path), "manifest": manifest}
         if (path / RESULT).is_file():
             report["result"] = json.loads((path / RESULT).read_text(encoding="utf-8"))
         print(json.dumps(report, indent=2))
-        return 0
+        return OK
     out = args.out or Path(f"{args.scan_id}.tar.gz")
     print(cache.export(args.scan_id, out))
-    return 0
+    return OK
 
 
 # ---------------------------------------------------------------- wiring
@@ -561,7 +566,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         return _fail(str(exc), EX_CONFIG)
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
+    except Exception as exc:  # bad input met where no command expected it: still one line
+        from silo_agent.limits import LimitExceeded
+        from silo_agent.scan import ScanError
+
+        if isinstance(exc, ScanError | LimitExceeded):
+            return _fail(str(exc), EX_DATAERR)
+        raise
 
 
 if __name__ == "__main__":

@@ -1,11 +1,16 @@
 """Configuration: pydantic models of the TOML file, and the one home of every default.
 
 A bad file is rejected before anything starts, with the file, the key path and what was
-expected (`ConfigError`, exit status 78 = EX_CONFIG).
+expected (`ConfigError`, exit status 78 = EX_CONFIG). Numbers are strict (TOML types already
+are): `true` or `"30"` where a number belongs is an error, an integer where a float belongs is
+fine. For the service, `load_config` also checks what the file points at (directories it must
+write, TLS files) so that `check-config` catches what would otherwise fail only once running.
 """
 
 from __future__ import annotations
 
+import json
+import tempfile
 import tomllib
 from itertools import pairwise
 from pathlib import Path
@@ -13,6 +18,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -22,9 +28,16 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from silo_agent.geometry import check_polygon, rigid_transform_problem, transform_from_euler
+from silo_agent.exits import CONFIG_ERROR
+from silo_agent.geometry import (
+    check_polygon,
+    grid_shape,
+    rigid_transform_problem,
+    transform_from_euler,
+)
+from silo_agent.limits import MAX_DURATION_S, MAX_GRID_CELLS
 
-EX_CONFIG = 78
+EX_CONFIG = CONFIG_ERROR  # the name callers of load_config know it by
 SAFE_ID = r"^[A-Za-z0-9_-]+$"
 
 
@@ -36,6 +49,13 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+def _host_name(host: str) -> str:
+    if not host or any(c.isspace() for c in host):
+        raise ValueError(f"want a host name or IP address, got {host!r}")
+    return host
+
+
+HostName = Annotated[str, AfterValidator(_host_name)]
 Point2 = tuple[float, float]
 Matrix4 = tuple[
     tuple[float, float, float, float],
@@ -161,7 +181,7 @@ class CameraConfig(Strict):
     fps: int = 30
     frames: int = Field(default=10, ge=1, description="depth frames aggregated per capture")
     warmup_frames: int = Field(default=30, ge=0)
-    timeout_s: float = Field(default=10.0, gt=0)
+    timeout_s: float = Field(default=10.0, gt=0, le=MAX_DURATION_S)
     color: bool = Field(
         default=False, description="also stream colour, aligned to depth, one RGB per point"
     )
@@ -186,12 +206,22 @@ class CameraConfig(Strict):
     )
     retries: int = Field(default=2, ge=0, description="live: hardware resets + retries on failure")
     reset_wait_s: float = Field(
-        default=20.0, gt=0, description="live: how long to wait for re-enumeration after a reset"
+        default=20.0, gt=0, le=MAX_DURATION_S,
+        description="live: how long to wait for re-enumeration after a reset"
     )
     imu_samples: int = Field(default=50, ge=1, description="accelerometer samples averaged")
     gravity_tolerance_deg: float = Field(
         default=3.0, gt=0, description="warn when IMU and extrinsic vertical differ by more"
     )
+
+    @field_validator("view")
+    @classmethod
+    def _known_view(cls, view: str | None) -> str | None:
+        from silo_agent.sim.layouts import VIEWS
+
+        if view is not None and view not in VIEWS:
+            raise ValueError(f"unknown view {view!r}, expected one of {', '.join(VIEWS)}")
+        return view
 
     @model_validator(mode="after")
     def _one_pose(self) -> CameraConfig:
@@ -209,10 +239,10 @@ class CameraConfig(Strict):
             )
         if self.aggregation == "temporal" and not self.temporal_filter:
             raise ValueError("aggregation = 'temporal' needs temporal_filter = true")
-        if has_matrix:
-            problem = rigid_transform_problem(np.asarray(self.extrinsic, dtype=float))
+        if has_matrix or has_euler:
+            problem = rigid_transform_problem(self.extrinsic_matrix())
             if problem:
-                raise ValueError(f"extrinsic: {problem}")
+                raise ValueError(f"{'extrinsic' if has_matrix else 'translate_m'}: {problem}")
         return self
 
     def extrinsic_matrix(self) -> np.ndarray | None:
@@ -282,7 +312,7 @@ class HomeAssistantConfig(Strict):
 
 
 class MqttConfig(Strict):
-    host: str = "127.0.0.1"
+    host: HostName = Field(default="127.0.0.1", description="broker name or address")
     port: int = Field(default=1883, ge=1, le=65535)
     topic_prefix: str = Field(default="silo", pattern=r"^[^#+]+$")
     protocol: Literal["5", "3.1.1"] = "5"
@@ -294,14 +324,14 @@ class MqttConfig(Strict):
     password_file: Path | None = None
     password_env: str | None = None
     tls: MqttTlsConfig | None = None
-    reconnect_min_s: float = Field(default=1.0, gt=0)
-    reconnect_max_s: float = Field(default=60.0, gt=0)
+    reconnect_min_s: float = Field(default=1.0, gt=0, le=MAX_DURATION_S)
+    reconnect_max_s: float = Field(default=60.0, gt=0, le=MAX_DURATION_S)
     max_inflight: int = Field(default=20, ge=1, le=65535)
     outbox_path: Path = Path("/var/lib/silo-agent/outbox.sqlite")
     outbox_max_messages: int = Field(default=100_000, ge=10)
     outbox_max_bytes: int = Field(default=500_000_000, ge=100_000)
     outbox_max_age_days: float = Field(default=30.0, gt=0)
-    shutdown_timeout_s: float = Field(default=5.0, ge=0)
+    shutdown_timeout_s: float = Field(default=5.0, ge=0, le=MAX_DURATION_S)
     sparkplug: SparkplugConfig = SparkplugConfig()
     homeassistant: HomeAssistantConfig = HomeAssistantConfig()
 
@@ -317,15 +347,19 @@ class MqttConfig(Strict):
 
 
 class ScheduleConfig(Strict):
-    interval_s: float | None = Field(default=None, gt=0)
+    interval_s: float | None = Field(default=None, gt=0, le=MAX_DURATION_S)
     cron: str | None = Field(default=None, description="crontab line, in silo.timezone")
     scan_at_start: bool = True
     misfire_grace_s: float = Field(
-        default=300, gt=0, description="a scan due this long ago (machine asleep) still runs"
+        default=300, gt=0, le=MAX_DURATION_S,
+        description="a scan due this long ago (machine asleep) still runs"
     )
-    scan_timeout_s: float = Field(default=600, gt=0, description="overall deadline of one scan")
+    scan_timeout_s: float = Field(
+        default=600, gt=0, le=MAX_DURATION_S, description="overall deadline of one scan"
+    )
     stop_timeout_s: float = Field(
-        default=30, ge=0, description="on SIGTERM, how long a running scan may finish"
+        default=30, ge=0, le=MAX_DURATION_S,
+        description="on SIGTERM, how long a running scan may finish"
     )
 
     @field_validator("cron")
@@ -408,7 +442,7 @@ class MetricsConfig(Strict):
     """Prometheus exposition (prometheus-client); off by default."""
 
     enabled: bool = False
-    host: str = Field(default="127.0.0.1", description="listen address")
+    host: HostName = Field(default="127.0.0.1", description="listen address")
     port: int = Field(default=9464, ge=1, le=65535)
 
 
@@ -506,6 +540,20 @@ class Config(Strict):
     calibration: CalibrationConfig = CalibrationConfig()
 
     @model_validator(mode="after")
+    def _grid_fits(self) -> Config:
+        rows, cols = grid_shape(np.asarray(self.silo.region), self.reconstruction.grid_step_m)
+        cells = rows * cols
+        if cells > MAX_GRID_CELLS:
+            raise PydanticCustomError(
+                "config_key",
+                "the region at this step is {cells} cells, more than the limit of {limit}; "
+                "use a coarser grid_step_m",
+                {"key": "reconstruction.grid_step_m", "cells": f"{cells:,}",
+                 "limit": f"{MAX_GRID_CELLS:,}"},
+            )
+        return self
+
+    @model_validator(mode="after")
     def _unique_serials(self) -> Config:
         serials = [c.serial for c in self.cameras]
         dupes = sorted({s for s in serials if serials.count(s) > 1})
@@ -542,23 +590,114 @@ def describe_validation_error(exc: ValidationError, source: str) -> str:
     return "\n".join(lines)
 
 
+def _toml_value(value: object) -> object:
+    """A TOML date or time in the JSON handed to the strict validator: an object, which no
+    key of the config accepts, so the error names the key."""
+    return {"toml date/time": str(value)}
+
+
 def parse_config(data: dict, source: str) -> Config:
-    """Validate a parsed TOML document; `source` names it in errors."""
+    """Validate a parsed TOML document, strictly (no `true` or `"30"` for a number); `source`
+    names it in errors. Validated as JSON, where strict mode still takes a string for a path
+    and an array for a tuple, as TOML writes them."""
     try:
-        return Config.model_validate(data)
+        document = json.dumps(data, default=_toml_value)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    try:
+        return Config.model_validate_json(document, strict=True)
     except ValidationError as exc:
         raise ConfigError(describe_validation_error(exc, source)) from None
 
 
-def load_config(path: str | Path) -> Config:
-    """Read and validate a TOML config file."""
+def _writable_directory_problem(directory: Path) -> str | None:
+    """Why the agent could not create and write `directory`, or None. The nearest existing
+    ancestor must be a directory the agent can create entries in (tried, and undone)."""
+    existing = directory
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a directory"
+    try:
+        tempfile.TemporaryDirectory(prefix=".silo-agent-check.", dir=existing).cleanup()
+    except OSError as exc:
+        return f"cannot create files in {existing}: {exc.strerror or exc}"
+    return None
+
+
+def _readable_file_problem(path: Path) -> str | None:
+    if not path.exists():
+        return f"{path} does not exist"
+    if not path.is_file():  # checked before opening: a FIFO would block the open
+        return f"{path} is not a regular file"
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        return f"cannot read {path}: {exc.strerror or exc}"
+    return None
+
+
+def environment_problems(config: Config) -> list[str]:
+    """`key: problem` for what the config points at and the agent could not use: directories
+    it writes, files it reads. Checked at start and by check-config, not on every parse."""
+    problems = []
+    for key, directory in (("audit.directory", config.audit.directory),
+                           ("mqtt.outbox_path", config.mqtt.outbox_path.parent)):
+        problem = _writable_directory_problem(Path(directory))
+        if problem:
+            problems.append(f"{key}: {problem}")
+    outbox = config.mqtt.outbox_path
+    if outbox.exists() and not outbox.is_file():
+        problems.append(f"mqtt.outbox_path: {outbox} exists and is not a regular file")
+    files = {"mqtt.password_file": config.mqtt.password_file}
+    if config.mqtt.tls is not None:
+        tls = config.mqtt.tls
+        files.update({"mqtt.tls.ca_file": tls.ca_file, "mqtt.tls.cert_file": tls.cert_file,
+                      "mqtt.tls.key_file": tls.key_file,
+                      "mqtt.tls.key_password_file": tls.key_password_file})
+    for key, path in files.items():
+        problem = path is not None and _readable_file_problem(path)
+        if problem:
+            problems.append(f"{key}: {problem}")
+    return problems
+
+
+def config_warnings(config: Config) -> list[str]:
+    """Settings that are valid but probably not meant: a cron line that never fires."""
+    warnings = []
+    if config.schedule.cron is not None:
+        from datetime import UTC, datetime
+
+        from apscheduler.triggers.cron import CronTrigger
+
+        trigger = CronTrigger.from_crontab(config.schedule.cron, timezone=config.silo.timezone)
+        if trigger.get_next_fire_time(None, datetime.now(UTC)) is None:
+            warnings.append(f"schedule.cron: {config.schedule.cron!r} never fires "
+                            "(no such date); only scan_at_start, interval_s and requests scan")
+    return warnings
+
+
+def load_config(path: str | Path, *, service: bool = False) -> Config:
+    """Read and validate a TOML config file. `service`: also what the daemon will write and
+    read (`environment_problems`), for `run`, its reloads and `check-config`; offline commands
+    such as `process --config` need none of it."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        raw = path.read_bytes()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset "
+                          f"{exc.start} ({exc.reason})") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    return parse_config(data, str(path))
+    config = parse_config(data, str(path))
+    problems = environment_problems(config) if service else []
+    if problems:
+        raise ConfigError("\n".join(f"{path}: {problem}" for problem in problems))
+    return config

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
+
+from silo_agent.limits import MAX_COORDINATE_M
 
 
 def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
@@ -13,6 +16,8 @@ def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str 
         return f"must be 4x4, got shape {matrix.shape}"
     if not np.all(np.isfinite(matrix)):
         return "contains NaN or infinity"
+    if np.any(np.abs(matrix[:3, 3]) > MAX_COORDINATE_M):
+        return f"translation beyond ±{MAX_COORDINATE_M:g} m: {matrix[:3, 3].tolist()}"
     if not np.allclose(matrix[3], [0, 0, 0, 1], atol=tolerance):
         return f"last row must be [0, 0, 0, 1], got {matrix[3].tolist()}"
     rotation = matrix[:3, :3]
@@ -21,6 +26,15 @@ def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str 
     if np.linalg.det(rotation) < 0:
         return "rotation part is a reflection (determinant -1)"
     return None
+
+
+def grid_shape(region: np.ndarray, step: float) -> tuple[int, int]:
+    """(rows, cols) of the grid of `step` cells over the region's bounding box (row = y)."""
+    region = np.asarray(region, dtype=float).reshape(-1, 2)
+    low, high = region.min(axis=0), region.max(axis=0)
+    cols = max(1, math.ceil((high[0] - low[0]) / step - 1e-9))
+    rows = max(1, math.ceil((high[1] - low[1]) / step - 1e-9))
+    return rows, cols
 
 
 def rotation_from_euler(rotate_deg: Sequence[float]) -> np.ndarray:

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
@@ -37,6 +37,9 @@ from silo_agent.scan_service import (
 )
 from silo_agent.telemetry.mqtt import Telemetry
 from silo_agent.telemetry.sparkplug import iso_to_ms
+
+if TYPE_CHECKING:
+    from silo_agent.detect import Pile
 
 log = structlog.get_logger(__name__)
 
@@ -172,6 +175,8 @@ class Pipeline:
         t = lap("reconstruct", t)
         check()
         summary = summarise(result, scan, timings)
+        if directory is not None:  # kept before the alarms, so losing it raises `cache`
+            cache_full = not self._keep_result(directory, summary, result, previous)
         surface = summary.get("surface") or {}
         inputs = Inputs(
             scan_id=scan_id, heightmap=result.heightmap, volume_m3=result.volume_m3,
@@ -192,12 +197,6 @@ class Pipeline:
         self.state = state
         self._save_state()
         self._publish(summary, result, events)
-        if directory is not None:
-            try:
-                keep_result(directory, summary, result, previous)
-            except OSError as exc:
-                log.error("cannot keep the result with the scan", scan_id=scan_id,
-                          error=str(exc))
         lap("publish", t)
         self.cache.enforce(self.protected())
         outcome = "ok" if result.valid else "invalid"
@@ -227,6 +226,27 @@ class Pipeline:
                 return None, True
         log.error("disk still full, scan published uncached", scan_id=scan.scan_id)
         return None, True
+
+    def _keep_result(self, directory: Path, summary: dict[str, Any], result: Result,
+                     previous: list[Pile]) -> bool:
+        """result.json, the height map and inputs.json into the scan's directory; on a full
+        disk evict older scans and retry once. False if they could not all be kept."""
+        try:
+            keep_result(directory, summary, result, previous)
+            return True
+        except OSError as exc:
+            error = exc
+        if is_disk_full(error):
+            removed = self.cache.evict_for_space(self.protected() | {directory.name})
+            log.warning("disk full, evicted scans", removed=removed)
+            try:
+                keep_result(directory, summary, result, previous)
+                return True
+            except OSError as exc:
+                error = exc
+        log.error("cannot keep the result with the scan", scan_id=directory.name,
+                  error=str(error))
+        return False
 
     def _failed(self, scan_id: str, captured_at: str, reason: str,
                 failures: list[CameraFailure], timings: dict[str, float],

@@ -8,17 +8,26 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import stat
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, BinaryIO, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from silo_agent.config import describe_validation_error
 from silo_agent.geometry import check_polygon, rigid_transform_problem
+from silo_agent.limits import (
+    MAX_CLOUD_POINTS,
+    MAX_MANIFEST_BYTES,
+    MAX_PLY_HEADER_BYTES,
+    MAX_SCAN_POINTS,
+)
 
 FORMAT = "silo-scan/1"
 MANIFEST = "scan.json"
@@ -156,6 +165,15 @@ class _Manifest(_Open):
     reconstruction: dict[str, Any] = Field(default_factory=dict)
     cameras: list[_Camera] = Field(min_length=1)
 
+    @field_validator("cameras")
+    @classmethod
+    def _unique_serials(cls, cameras: list[_Camera]) -> list[_Camera]:
+        serials = [c.serial for c in cameras]
+        dupes = sorted({s for s in serials if serials.count(s) > 1})
+        if dupes:
+            raise ValueError(f"camera serials must be unique, repeated: {', '.join(dupes)}")
+        return cameras
+
     @field_validator("captured_at")
     @classmethod
     def _rfc3339(cls, value: str) -> str:
@@ -176,17 +194,22 @@ _PLY_TYPES = {
 }  # fmt: skip
 
 
-def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read a binary little-endian PLY cloud: (points (N,3) float32, colours (N,3) uint8 | None)."""
+@contextmanager
+def _open_regular(path: Path) -> Iterator[BinaryIO]:
+    """A binary handle on `path` if it is a regular file (through symlinks); a FIFO would
+    block the read and a device such as /dev/zero never ends."""
     try:
-        raw = path.read_bytes()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
-        raise ScanError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
-    header = raw[:end].decode("ascii", errors="replace").splitlines()
-    body = memoryview(raw)[end + len(b"end_header\n") :]
+    with os.fdopen(fd, "rb") as handle:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ScanError(f"{path}: not a regular file")
+        yield handle
+
+
+def _ply_header(path: Path, header: list[str]) -> tuple[int, list[tuple[str, str]]]:
+    """(vertex count, [(property, dtype)]) of a PLY header's lines."""
     count, props, in_vertex, fmt = None, [], False, None
     for line in header[1:]:
         words = line.split()
@@ -195,32 +218,67 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         if words[0] == "format":
             fmt = " ".join(words[1:])
         elif words[0] == "element":
+            if len(words) != 3:
+                raise ScanError(f"{path}: bad element line '{line}' (want 'element vertex N')")
             if words[1] != "vertex" or count is not None:
                 raise ScanError(f"{path}: only one 'element vertex' is supported, got '{line}'")
             try:
                 count = int(words[2])
-            except (IndexError, ValueError):
+            except ValueError:
                 raise ScanError(f"{path}: bad element line '{line}'") from None
             in_vertex = True
         elif words[0] == "property" and in_vertex:
             if len(words) != 3 or words[1] not in _PLY_TYPES:
                 raise ScanError(f"{path}: unsupported property '{line}'")
+            if any(name == words[2] for name, _ in props):
+                raise ScanError(f"{path}: property '{words[2]}' is repeated")
             props.append((words[2], _PLY_TYPES[words[1]]))
     if fmt != "binary_little_endian 1.0":
         raise ScanError(f"{path}: format must be 'binary_little_endian 1.0', got {fmt!r}")
     if count is None or count < 0:
         raise ScanError(f"{path}: no 'element vertex N' in the header")
+    if count > MAX_CLOUD_POINTS:
+        raise ScanError(f"{path}: {count:,} points, more than the limit of "
+                        f"{MAX_CLOUD_POINTS:,} per cloud")
     if [p for p, _ in props[:3]] != ["x", "y", "z"] or any(t != "<f4" for _, t in props[:3]):
         raise ScanError(f"{path}: the first properties must be 'float x', 'float y', 'float z'")
-    dtype = np.dtype(props)
-    expected = count * dtype.itemsize
+    return count, props
+
+
+def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a binary little-endian PLY cloud: (points (N,3) float32, colours (N,3) uint8 | None).
+
+    The header is read first and the body only when the file's size is what it announces,
+    so a wrong or endless file costs no more than the header."""
+    with _open_regular(path) as handle:
+        try:
+            start = handle.read(MAX_PLY_HEADER_BYTES)
+            size = os.fstat(handle.fileno()).st_size
+        except OSError as exc:
+            raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        end = start.find(b"end_header\n")
+        if not start.startswith(b"ply\n") or end < 0:
+            raise ScanError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the "
+                            f"first {MAX_PLY_HEADER_BYTES // 1024} KiB)")
+        header = start[:end].decode("ascii", errors="replace").splitlines()
+        count, props = _ply_header(path, header)
+        dtype = np.dtype(props)
+        expected = count * dtype.itemsize
+        body_bytes = size - (end + len(b"end_header\n"))
+        if body_bytes != expected:
+            raise ScanError(
+                f"{path}: header says {count} points ({expected} bytes) but the body has "
+                f"{body_bytes} bytes"
+            )
+        if count == 0:
+            raise ScanError(f"{path}: the cloud is empty (0 points)")
+        handle.seek(end + len(b"end_header\n"))
+        try:
+            body = handle.read(expected)
+        except OSError as exc:
+            raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
     if len(body) != expected:
-        raise ScanError(
-            f"{path}: header says {count} points ({expected} bytes) but the body has "
-            f"{len(body)} bytes"
-        )
-    if count == 0:
-        raise ScanError(f"{path}: the cloud is empty (0 points)")
+        raise ScanError(f"{path}: changed while it was read ({len(body)} of {expected} bytes)")
     data = np.frombuffer(body, dtype=dtype, count=count)
     if dtype.itemsize == 12:
         points = data.view("<f4").reshape(count, 3).astype(np.float32)
@@ -263,14 +321,23 @@ def read_manifest(directory: Path) -> dict[str, Any]:
     path = directory / MANIFEST
     if not directory.is_dir():
         raise ScanError(f"{directory}: not a directory")
+    if not path.exists():
+        raise ScanError(f"{path}: missing (not a silo-scan/1 directory)")
+    with _open_regular(path) as handle:
+        try:
+            raw = handle.read(MAX_MANIFEST_BYTES + 1)
+        except OSError as exc:
+            raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(raw) > MAX_MANIFEST_BYTES:
+        raise ScanError(f"{path}: larger than the limit of {MAX_MANIFEST_BYTES // 2**20} MiB")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ScanError(f"{path}: missing (not a silo-scan/1 directory)") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ScanError(f"{path}: cannot read: {exc}") from None
+        data = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ScanError(f"{path}: not UTF-8 text at byte offset {exc.start}") from None
     except json.JSONDecodeError as exc:
         raise ScanError(f"{path}: not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ScanError(f"{path}: JSON nested too deeply") from None
     if not isinstance(data, dict):
         raise ScanError(f"{path}: must be a JSON object")
     try:
@@ -294,8 +361,13 @@ def read_scan(directory: str | Path) -> Scan:
     )
     cameras = []
     known = {"serial", "cloud", "extrinsic", "intrinsics"}
+    total = 0
     for raw_camera, camera in zip(data["cameras"], manifest.cameras, strict=True):
         points, colors = read_ply(directory / camera.cloud)
+        total += len(points)
+        if total > MAX_SCAN_POINTS:
+            raise ScanError(f"{directory}: more than the limit of {MAX_SCAN_POINTS:,} points in "
+                            f"all clouds together (at {camera.cloud})")
         cameras.append(
             CameraCloud(
                 serial=camera.serial,

@@ -394,7 +394,7 @@ def test_full_disk_publishes_uncached_with_a_cache_alarm(
      "alarms.collapse_depth_m: Input should be greater than 0"),
     ("schedule", {"cron": "0 25 * * *"}, "schedule.cron: not a crontab expression"),
     ("metrics", {"port": 0}, "metrics.port: Input should be greater than or equal to 1"),
-    ("simulation", {"sequence": "flat"}, "simulation.sequence: Input should be a valid list"),
+    ("simulation", {"sequence": "flat"}, "simulation.sequence: Input should be a valid array"),
 ])
 def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path, section, values, expected):
     config = write_config(tmp_path / "agent.toml", 1, tmp_path, **{section: values})

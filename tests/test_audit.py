@@ -32,7 +32,7 @@ def make_scan(k: int, points: int = 2000, when: datetime | None = None) -> Scan:
 
 
 def test_scan_directory_carries_hashes_config_and_version(tmp_path: Path):
-    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"))
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"), "silo-t")
     path = cache.write_scan(make_scan(1), {"silo": {"id": "silo-t"}, "note": "snapshot"})
     manifest = json.loads((path / "scan.json").read_text())
     assert manifest["format"] == "silo-scan/1"
@@ -48,12 +48,12 @@ def test_scan_directory_carries_hashes_config_and_version(tmp_path: Path):
 
 
 def test_retention_keeps_the_cache_within_max_bytes_oldest_first(tmp_path: Path):
-    probe = AuditCache(AuditConfig(directory=tmp_path / "probe"))
+    probe = AuditCache(AuditConfig(directory=tmp_path / "probe"), "silo-t")
     probe.write_scan(make_scan(0), {})
     one = probe.entries()[0].bytes
     max_bytes = int(4.5 * one)
     cache = AuditCache(AuditConfig(directory=tmp_path / "scans", max_bytes=max_bytes,
-                                   max_age_days=3650))
+                                   max_age_days=3650), "silo-t")
     ids = []
     for k in range(30):
         ids.append(cache.write_scan(make_scan(k), {}).name)
@@ -66,7 +66,7 @@ def test_retention_keeps_the_cache_within_max_bytes_oldest_first(tmp_path: Path)
 
 
 def test_retention_by_age(tmp_path: Path):
-    cache = AuditCache(AuditConfig(directory=tmp_path / "scans", max_age_days=2))
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans", max_age_days=2), "silo-t")
     ids = [cache.write_scan(make_scan(k, when=T0 + timedelta(days=k)), {}).name
            for k in range(6)]  # fmt: skip
     removed = cache.enforce(protected={ids[0]}, now=T0 + timedelta(days=5, hours=1))
@@ -75,13 +75,13 @@ def test_retention_by_age(tmp_path: Path):
 
 
 def test_disk_full_eviction_spares_protected(tmp_path: Path):
-    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"))
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"), "silo-t")
     ids = [cache.write_scan(make_scan(k), {}).name for k in range(21)]
     assert cache.evict_for_space(protected={ids[0]}) == ids[1:3]  # the oldest 10 %
 
 
 def test_staging_left_by_a_crash_is_cleaned(tmp_path: Path):
-    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"))
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"), "silo-t")
     cache.write_scan(make_scan(1), {})
     stray = cache.directory / ".silo-t-20261101T070000Z.abc"
     stray.mkdir()
@@ -92,7 +92,7 @@ def test_staging_left_by_a_crash_is_cleaned(tmp_path: Path):
 
 
 def test_export_and_lookup(tmp_path: Path):
-    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"))
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"), "silo-t")
     scan_id = cache.write_scan(make_scan(1), {}).name
     out = cache.export(scan_id, tmp_path / "x.tar.gz")
     with tarfile.open(out) as tar:

@@ -120,6 +120,7 @@ def test_cli_calibrate_write_round_trip(tmp_path: Path, scan_dir: Path) -> None:
 
 def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: Path) -> None:
     config = _config_for(tmp_path, ["sim-A1", "sim-A9"])
+    config.write_text(config.read_text().replace('view = "A9"', 'view = "A5"'))  # A9 is no view
     done = run_cli("calibrate", "--config", str(config), "--scan", str(scan_dir))
     assert done.returncode == 65
     assert "sim-A3" in done.stderr and "sim-A9" in done.stderr

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.geometry import cell_fractions
+from silo_agent.geometry import cell_fractions, grid_shape
+from silo_agent.limits import MAX_GRID_CELLS, LimitExceeded
 from silo_agent.scan import CameraCloud, Site
 
 
@@ -50,9 +50,11 @@ def _grid_over(region_bytes: bytes, region_shape: tuple[int, ...], step: float) 
     """Cutting the region's boundary cells is ~15 ms at 1 cm; a daemon asks for the same grid
     every scan. The shared `inside` is read-only."""
     region = np.frombuffer(region_bytes).reshape(region_shape)
-    low, high = region.min(axis=0), region.max(axis=0)
-    cols = max(1, math.ceil((high[0] - low[0]) / step - 1e-9))
-    rows = max(1, math.ceil((high[1] - low[1]) / step - 1e-9))
+    low = region.min(axis=0)
+    rows, cols = grid_shape(region, step)
+    if rows * cols > MAX_GRID_CELLS:  # refused before numpy is asked for the arrays
+        raise LimitExceeded(f"the region at grid step {step} m is {rows * cols:,} cells, more "
+                            f"than the limit of {MAX_GRID_CELLS:,}; use a coarser grid step")
     origin = (float(low[0]), float(low[1]))
     inside = cell_fractions(region, origin, step, (rows, cols))
     inside.flags.writeable = False

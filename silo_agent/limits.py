@@ -1,0 +1,17 @@
+"""Bounds on what one input may ask of the machine, in one place (docs/limits.md lists them).
+
+A config or scan past a bound is refused with an error naming it, before any large allocation:
+a region at a fine grid step, or a cloud file that never ends, must not exhaust memory or hang.
+"""
+
+MAX_GRID_CELLS = 4_000_000  # region bounding box / grid_step_m^2: a 40 m square at 2 cm
+MAX_CLOUD_POINTS = 10_000_000  # one camera's cloud (a D455 frame has 0.4 million pixels)
+MAX_SCAN_POINTS = 16_000_000  # all cameras of one scan together: 8 cameras of 2 million
+MAX_PLY_HEADER_BYTES = 64 * 1024  # a PLY header longer than this is not a point cloud
+MAX_MANIFEST_BYTES = 16 * 1024 * 1024  # scan.json (it carries the config snapshot)
+MAX_COORDINATE_M = 100_000.0  # |translation| of an extrinsic: far beyond any silo, within float32
+MAX_DURATION_S = 366 * 24 * 3600.0  # any configured interval or timeout: at most a year
+
+
+class LimitExceeded(ValueError):
+    """An input past one of the bounds above; the message names the input and the bound."""
