@@ -15,15 +15,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from silo_agent import __version__
-from silo_agent.config import EX_CONFIG, Config, ConfigError, load_config
+from silo_agent.exits import EX_CONFIG, EX_DATAERR
 
 if TYPE_CHECKING:
     from silo_agent.capture import CameraFailure
+    from silo_agent.config import Config
     from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud, Scan
-
-EX_DATAERR = 65
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -31,6 +29,34 @@ Handler = Callable[[argparse.Namespace], int]
 def _fail(message: str, status: int) -> int:
     print(f"silo-agent: {message}", file=sys.stderr)
     return status
+
+
+def load_config(path: Path) -> Config:
+    """The validated config file; pydantic and the config models load here, on first use,
+    not at start-up (about 0.1 s that `process` without --config and `--help` never pay)."""
+    from silo_agent.config import load_config as load
+
+    return load(path)
+
+
+def _configure_logging(args: argparse.Namespace) -> None:
+    """structlog set up for the command's --log-level (structlog loads here, not at start)."""
+    from silo_agent.log import configure_logging
+
+    configure_logging(args.log_level)
+
+
+class _VersionAction(argparse.Action):
+    """--version, reading the installed version only when asked (importlib.metadata is slow)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, help="show the version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *_args: object) -> None:
+        from silo_agent import __version__
+
+        print(f"silo-agent {__version__}")
+        parser.exit()
 
 
 # ---------------------------------------------------------------- check-config
@@ -45,58 +71,14 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- process
 
 
-def _settings_for(scan_settings: dict, config: Config | None, args: argparse.Namespace):
-    """Scan's own settings, then --config, then flags (later wins)."""
-    from silo_agent.config import ReconstructionConfig
-
-    merged: dict = {}
-    known = ReconstructionConfig.model_fields
-    merged.update({k: v for k, v in scan_settings.items() if k in known})
-    if config is not None:
-        merged.update(config.reconstruction.model_dump(exclude_unset=True))
-    if args.grid_step is not None:
-        merged["grid_step_m"] = args.grid_step
-    if args.method is not None:
-        merged["method"] = args.method
-    try:
-        return ReconstructionConfig.model_validate(merged)
-    except Exception as exc:  # pydantic.ValidationError, reported like a config error
-        from pydantic import ValidationError
-
-        if isinstance(exc, ValidationError):
-            from silo_agent.config import describe_validation_error
-
-            raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
-        raise
-
-
 def cmd_process(args: argparse.Namespace) -> int:
-    from silo_agent.config import DetectionConfig
-    from silo_agent.detect import ModelError, analyse
-    from silo_agent.scan import ScanError, read_scan
+    from silo_agent import batch
 
     config = load_config(args.config) if args.config else None
-    try:
-        scan = read_scan(args.scan_dir)
-    except ScanError as exc:
-        return _fail(str(exc), EX_DATAERR)
-    settings = _settings_for(scan.reconstruction, config, args)
-    site = scan.site
-    if config is not None:  # the config's site wins over the scan's, as for any setting
-        from silo_agent.reconstruct import site_from_config
-
-        site = site_from_config(config)
-    detection = config.detection if config is not None else DetectionConfig()
-    try:
-        calibration = config.calibration if config is not None else None
-        result = analyse(scan, settings, detection, site=site, calibration=calibration)
-    except ModelError as exc:
-        return _fail(str(exc), EX_CONFIG)
-    if args.json:
-        print(json.dumps(result.summary(), allow_nan=False))
-    else:
-        print(result.describe())
-    return 0
+    if config is not None and config.detection.onnx is not None:
+        _configure_logging(args)  # the ONNX detector logs; nothing else on this path does
+    options = batch.Options(config, args.grid_step, args.method, args.json)
+    return batch.run(args.scan_dirs, options, args.jobs)
 
 
 # ---------------------------------------------------------------- cameras
@@ -127,6 +109,7 @@ def _new_scan(
     config: Config, clouds: list[CameraCloud], failures: list[CameraFailure], started: datetime
 ) -> Scan:
     """A silo-scan/1 `Scan` of one capture; the scan id is the silo and the capture's UTC time."""
+    from silo_agent import __version__
     from silo_agent.reconstruct import site_from_config
     from silo_agent.scan import Scan
 
@@ -421,6 +404,8 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
     if path.is_dir():
         return path
     if config_path is None:
+        from silo_agent.config import ConfigError
+
         raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
     from silo_agent.audit import AuditCache
 
@@ -495,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="silo-agent", description="Grain silo inventory from RealSense depth cameras."
     )
-    parser.add_argument("--version", action="version", version=f"silo-agent {__version__}")
+    parser.add_argument("--version", action=_VersionAction)
     parser.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning", "error"]
     )
@@ -523,15 +508,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", type=Path)
     p.set_defaults(handler=cmd_check_config)
 
-    p = sub.add_parser("process", help="reconstruct a silo-scan/1 directory offline")
-    p.add_argument("scan_dir", type=Path, metavar="SCAN_DIR")
+    p = sub.add_parser("process", help="reconstruct silo-scan/1 directories offline")
+    p.add_argument("scan_dirs", type=Path, nargs="+", metavar="DIR",
+                   help="a scan directory, or a directory of them (an audit cache)")
     p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
     p.add_argument("--grid-step", type=float, metavar="METRES")
     p.add_argument(
         "--method", choices=["bicm", "rectangle", "alpha", "poisson", "hull"],
         help="reconstruction method (baselines for comparison); default bicm",
     )
-    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object per scan, one per line, with its scan_dir")
+    p.add_argument("--jobs", type=_positive, default=1, metavar="N",
+                   help="process N scans at a time in worker processes (default 1)")
     p.set_defaults(handler=cmd_process)
 
     p = sub.add_parser("devices", help="list connected RealSense cameras")
@@ -595,17 +584,21 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from silo_agent.heap import keep_freed_memory
-    from silo_agent.log import configure_logging
 
     keep_freed_memory()
-    configure_logging(args.log_level)
     handler: Handler = args.handler
+    if handler is not cmd_process:  # process sets logging up itself, only when it will log
+        _configure_logging(args)
     try:
         return handler(args)
-    except ConfigError as exc:
-        return _fail(str(exc), EX_CONFIG)
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        from silo_agent.config import ConfigError  # loaded already if one was raised
+
+        if isinstance(exc, ConfigError):
+            return _fail(str(exc), EX_CONFIG)
+        raise
 
 
 if __name__ == "__main__":

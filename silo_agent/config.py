@@ -21,9 +21,9 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from silo_agent.exits import EX_CONFIG  # noqa: F401  (re-exported: config errors exit with it)
 from silo_agent.geometry import check_polygon, rigid_transform_problem, transform_from_euler
 
-EX_CONFIG = 78
 SAFE_ID = r"^[A-Za-z0-9_-]+$"
 
 

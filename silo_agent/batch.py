@@ -1,0 +1,172 @@
+"""`silo-agent process` over one or many scan directories in one process.
+
+Re-processing an archive pays the imports once instead of once per scan, and a fresh process
+faults every array in for the first time: the second scan of a batch runs faster than the
+first. Each scan goes through `process_dir`; a scan that fails is one line on stderr naming
+its directory and the others go on. Nothing here imports numpy, scipy or pydantic at module
+level, so `process --help` stays quick.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+from silo_agent.exits import EX_CONFIG, EX_DATAERR, EX_FAILED
+
+if TYPE_CHECKING:
+    from silo_agent.config import Config, ReconstructionConfig
+
+MANIFEST = "scan.json"  # silo_agent.scan.MANIFEST, not imported: no numpy before it is needed
+PROGRESS_MIN_SCANS = 4  # a progress bar only for batches longer than this
+
+
+@dataclass(frozen=True)
+class Options:
+    """What applies to every scan of the batch: --config (already loaded) and the flags."""
+
+    config: Config | None = None
+    grid_step: float | None = None
+    method: str | None = None
+    json: bool = False
+
+
+@dataclass(frozen=True)
+class Processed:
+    """One scan's outcome; `output` is its stdout text (a JSON line or a summary)."""
+
+    scan_dir: str
+    status: int  # 0, EX_DATAERR, EX_CONFIG or EX_FAILED
+    output: str = ""
+    error: str = ""
+
+
+def scan_dirs(targets: Sequence[Path]) -> list[Path]:
+    """The scan directories to process: each target that is a scan (has scan.json) or is not
+    a directory of scans, and the scans directly inside a directory of scans (an audit
+    cache), in name order. A target that is neither stays, so it fails with a clear line."""
+    found: list[Path] = []
+    for target in targets:
+        if target.is_dir() and not (target / MANIFEST).exists():
+            children = sorted(c for c in target.iterdir()
+                              if not c.name.startswith(".") and (c / MANIFEST).is_file())
+            if children:
+                found += children
+                continue
+        found.append(target)
+    return found
+
+
+def settings_for(scan_settings: dict, options: Options) -> ReconstructionConfig:
+    """Scan's own settings, then --config, then flags (later wins)."""
+    from pydantic import ValidationError
+
+    from silo_agent.config import ConfigError, ReconstructionConfig, describe_validation_error
+
+    known = ReconstructionConfig.model_fields
+    merged = {k: v for k, v in scan_settings.items() if k in known}
+    if options.config is not None:
+        merged.update(options.config.reconstruction.model_dump(exclude_unset=True))
+    if options.grid_step is not None:
+        merged["grid_step_m"] = options.grid_step
+    if options.method is not None:
+        merged["method"] = options.method
+    try:
+        return ReconstructionConfig.model_validate(merged)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
+
+
+def process_dir(directory: Path, options: Options) -> Processed:
+    """Read, reconstruct and detect one scan directory; never raises for a bad scan."""
+    from silo_agent.config import ConfigError, DetectionConfig
+    from silo_agent.detect import ModelError, analyse
+    from silo_agent.scan import ScanError, read_scan
+
+    name = str(directory)
+    config = options.config
+    try:
+        scan = read_scan(directory)
+        settings = settings_for(scan.reconstruction, options)
+        site = scan.site
+        if config is not None:  # the config's site wins over the scan's, as for any setting
+            from silo_agent.reconstruct import site_from_config
+
+            site = site_from_config(config)
+        detection = config.detection if config is not None else DetectionConfig()
+        calibration = config.calibration if config is not None else None
+        result = analyse(scan, settings, detection, site=site, calibration=calibration)
+    except ScanError as exc:  # its message names the file already
+        return Processed(name, EX_DATAERR, error=str(exc))
+    except (ConfigError, ModelError) as exc:
+        return Processed(name, EX_CONFIG, error=f"{name}: {exc}")
+    except Exception as exc:  # a bug or an odd scan must not stop the rest of a batch
+        return Processed(name, EX_FAILED,
+                         error=f"{name}: processing failed: {type(exc).__name__}: {exc}")
+    if options.json:
+        output = json.dumps({**result.summary(), "scan_dir": name}, allow_nan=False)
+    else:
+        output = result.describe()
+    return Processed(name, 0, output)
+
+
+def _outcomes(dirs: Sequence[Path], options: Options, jobs: int) -> Iterator[Processed]:
+    """Each scan's outcome in the order given, from `jobs` worker processes if more than one."""
+    if jobs <= 1 or len(dirs) <= 1:
+        for directory in dirs:
+            yield process_dir(directory, options)
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=min(jobs, len(dirs))) as pool:
+        yield from pool.map(process_dir, dirs, [options] * len(dirs))
+
+
+class Progress:
+    """A one-line bar on a terminal's stderr, redrawn in place; nothing when not a TTY."""
+
+    WIDTH = 30
+
+    def __init__(self, total: int, stream: TextIO) -> None:
+        self.total = total
+        self.stream = stream
+        self.shown = total > PROGRESS_MIN_SCANS and stream.isatty()
+
+    def update(self, done: int, name: str) -> None:
+        if self.shown:
+            filled = self.WIDTH * done // self.total
+            bar = "#" * filled + "." * (self.WIDTH - filled)
+            self.stream.write(f"\r\x1b[K[{bar}] {done}/{self.total} {name}")
+            self.stream.flush()
+
+    def clear(self) -> None:
+        """Erase the bar so a message line starts at column 0."""
+        if self.shown:
+            self.stream.write("\r\x1b[K")
+            self.stream.flush()
+
+
+def run(targets: Sequence[Path], options: Options, jobs: int = 1) -> int:
+    """Process every scan of `targets`, print each result as it comes (in the order given) and
+    return the exit status: 0 when all were processed, else the status of the first failure
+    (65 bad scan data, 78 bad settings or model, 1 other); the count is the last stderr line."""
+    dirs = scan_dirs(targets)
+    progress = Progress(len(dirs), sys.stderr)
+    failed: list[Processed] = []
+    for done, outcome in enumerate(_outcomes(dirs, options, jobs), start=1):
+        progress.clear()
+        if outcome.status == 0:
+            print(outcome.output, flush=True)
+        else:
+            failed.append(outcome)
+            print(f"silo-agent: {outcome.error}", file=sys.stderr, flush=True)
+        progress.update(done, Path(outcome.scan_dir).name)
+    progress.clear()
+    if len(dirs) > 1:
+        print(f"silo-agent: {len(dirs) - len(failed)} of {len(dirs)} scans processed"
+              + (f", {len(failed)} failed" if failed else ""), file=sys.stderr)  # fmt: skip
+    return failed[0].status if failed else 0
