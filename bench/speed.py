@@ -178,7 +178,8 @@ def _ratio_line(what: str, agent_s: float, cc_s: float, target: float) -> str:
             f" (target <= {target:g}: {verdict}).")
 
 
-def section_c(base: Scan, runs: int, workdir: Path) -> list[str]:
+def section_c(base: Scan, runs: int, workdir: Path,
+              baseline: tuple[str, Path] | None = None) -> list[str]:
     """Single scan and batch, silo-agent and CloudCompare interleaved so both see the same
     machine load."""
     cache, plys = _cached_scans(base, workdir)
@@ -238,7 +239,7 @@ def section_c(base: Scan, runs: int, workdir: Path) -> list[str]:
         f" {batch.wall_s / n:.3f} s is reading it, pile detection and the process's start"
         " shared out.", "",
         *_stages(scan_dir, runs),
-        *_import_tables(scan_dir),
+        *_import_tables(scan_dir, baseline),
     ]
 
 
@@ -317,10 +318,11 @@ def _stages(scan_dir: Path, runs: int) -> list[str]:
 F2PY_ALL = "numpy.f2py with what it imports (cumulative, also counted in its packages)"
 
 
-def _importtime(command: list[str]) -> dict[str, float]:
-    """Seconds of import per top-level package (self times summed), from `-X importtime`."""
+def _importtime(command: list[str], tree: Path = REPO) -> dict[str, float]:
+    """Seconds of import per top-level package (self times summed), from `-X importtime`, of
+    silo_agent from source `tree` (run from there: `-m` looks in the working directory first)."""
     done = subprocess.run([sys.executable, "-X", "importtime", *command], capture_output=True,
-                          text=True, cwd=REPO, env=ENV, check=False)
+                          text=True, cwd=tree, env=ENV | {"PYTHONPATH": str(tree)}, check=False)
     per: dict[str, float] = {}
     for line in done.stderr.splitlines():
         found = re.match(r"import time:\s+(\d+) \|\s+(\d+) \|\s+(\S+)$", line)
@@ -333,14 +335,22 @@ def _importtime(command: list[str]) -> dict[str, float]:
     return per
 
 
-def _import_tables(scan_dir: Path, runs: int = 3) -> list[str]:
-    """Import time by package for `process --help` and the process path, median of runs."""
+def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None,
+                   runs: int = 3) -> list[str]:
+    """Import time by package for `process --help` and the process path, median of runs, and
+    the same for the `baseline` commit's source tree if given (runs alternate between them)."""
     commands = {
         "`process --help`": ["-m", "silo_agent", "process", "--help"],
-        "`process SCAN --json`": ["-m", "silo_agent", "process", str(scan_dir), "--grid-step",
-                                  "0.01", "--json"],
+        "`process SCAN`": ["-m", "silo_agent", "process", str(scan_dir), "--grid-step", "0.01",
+                           "--json"],
     }
-    tables = {k: [_importtime(c) for _ in range(runs)] for k, c in commands.items()}
+    trees = {"": REPO} if baseline is None else {f" at {baseline[0]}": baseline[1], "": REPO}
+    columns = {f"{name}{label}": (command, tree) for name, command in commands.items()
+               for label, tree in trees.items()}  # fmt: skip
+    tables: dict[str, list[dict[str, float]]] = {k: [] for k in columns}
+    for _ in range(runs):
+        for key, (command, tree) in columns.items():
+            tables[key].append(_importtime(command, tree))
     names = sorted({n for runs_ in tables.values() for r in runs_ for n in r})
 
     def median_of(key: str, name: str) -> float:
@@ -348,13 +358,15 @@ def _import_tables(scan_dir: Path, runs: int = 3) -> list[str]:
 
     total = {k: statistics.median(sum(t for n, t in r.items() if n != F2PY_ALL) for r in v)
              for k, v in tables.items()}
-    shown = sorted((n for n in names if max(median_of(k, n) for k in tables) >= 0.005),
-                   key=lambda n: -median_of("`process SCAN --json`", n))
+    shown = sorted((n for n in names if max(median_of(k, n) for k in tables) >= 0.01),
+                   key=lambda n: -median_of("`process SCAN`", n))
     lines = [
         f"### Import time by package (`python -X importtime`, median of {runs})", "",
         "Self time of every module imported, summed per top-level package (`numpy.f2py` apart:"
         " numpy loads it lazily, and scipy's array-API layer, which every scipy submodule used"
-        " here imports, touches it). Packages under 5 ms in both are in the total only.", "",
+        " here imports, touches it). Packages under 10 ms in every column are in the total only."
+        + ("" if baseline is None else f" Columns `at {baseline[0]}` are the source tree of"
+           f" that commit (`git archive {baseline[0]}`), run alternately with this one."), "",
         "| package | " + " | ".join(f"{k} s" for k in tables) + " |",
         "|---|" + "---|" * len(tables),
     ]
@@ -375,6 +387,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                    help="smoke run: 2 runs, two point counts, two grid steps")
     p.add_argument("--whole", action="store_true",
                    help="only (c), the whole processes (default out: speed-process.md)")
+    p.add_argument("--baseline", metavar="COMMIT",
+                   help="also time the imports of this commit's source tree, for comparison")
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
     args.out = args.out or Path("bench/results/speed-process.md" if args.whole
@@ -397,7 +411,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         lines += section_a(scan, runs, cold_heap_s)
         lines += section_b(base, points, steps, runs)
     with tempfile.TemporaryDirectory(prefix="silo-speed-") as tmp:
-        lines += section_c(base, 2 if args.quick else 5, Path(tmp))
+        baseline = None
+        if args.baseline:
+            tree = Path(tmp) / "baseline"
+            tree.mkdir()
+            archive = subprocess.run(["git", "archive", args.baseline], cwd=REPO,
+                                     capture_output=True, check=True).stdout
+            subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+            baseline = (args.baseline, tree)
+        lines += section_c(base, 2 if args.quick else 5, Path(tmp), baseline)
     before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
     load = (f"- machine load (`uptime` load average, 1 / 5 / 15 min) at start {before}, at end"
             f" {after}: other work shares the {os.cpu_count()} cores, figures are under that load")
