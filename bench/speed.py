@@ -253,7 +253,7 @@ from silo_agent.heap import keep_freed_memory
 keep_freed_memory()
 import numpy, pydantic
 t.append(time.perf_counter())
-import silo_agent.config, silo_agent.scan
+import silo_agent.config, silo_agent.scan, silo_agent.scan_service as service
 t.append(time.perf_counter())
 import scipy.sparse
 t.append(time.perf_counter())
@@ -261,14 +261,12 @@ import silo_agent.reconstruct
 t.append(time.perf_counter())
 import silo_agent.detect, silo_agent.batch
 t.append(time.perf_counter())
-from silo_agent.scan import read_scan
-scan = read_scan(args.scan_dirs[0])
+scan = silo_agent.scan.read_scan(args.scan_dirs[0])
 t.append(time.perf_counter())
-options = silo_agent.batch.Options(None, args.grid_step, args.method, args.json)
-settings = silo_agent.batch.settings_for(scan.reconstruction, options)
-result = silo_agent.detect.analyse(scan, settings, silo_agent.config.DetectionConfig())
+analysis = service.overridden(service.analysis_of(scan), None, args.grid_step, args.method)
+result = service.analyse_scan(scan, analysis, [])
 t.append(time.perf_counter())
-print(json.dumps(result.summary(), allow_nan=False))
+print(json.dumps(service.summarise(result, scan, {}), allow_nan=False))
 t.append(time.perf_counter())
 print(json.dumps({"steps": [b - a for a, b in zip(t, t[1:])], "inner": result.timings_s}),
       file=sys.stderr)
@@ -276,7 +274,7 @@ print(json.dumps({"steps": [b - a for a, b in zip(t, t[1:])], "inner": result.ti
 STEP_NAMES = [
     "import silo_agent.cli, parse the arguments",
     "import numpy and pydantic",
-    "import the config models and the scan reader (silo_agent.config, .scan)",
+    "import the config models, the scan reader and service (silo_agent.config, .scan, ...)",
     "import scipy (its array-API layer and numpy.f2py, scipy.sparse)",
     "import silo_agent.reconstruct (scipy.ndimage, scipy.sparse.linalg)",
     "import silo_agent.detect",

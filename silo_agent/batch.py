@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, TextIO
 from silo_agent.exits import EX_CONFIG, EX_DATAERR, EX_FAILED
 
 if TYPE_CHECKING:
-    from silo_agent.config import Config, ReconstructionConfig
+    from silo_agent.config import Config
 
 MANIFEST = "scan.json"  # silo_agent.scan.MANIFEST, not imported: no numpy before it is needed
 PROGRESS_MIN_SCANS = 4  # a progress bar only for batches longer than this
@@ -61,45 +61,18 @@ def scan_dirs(targets: Sequence[Path]) -> list[Path]:
     return found
 
 
-def settings_for(scan_settings: dict, options: Options) -> ReconstructionConfig:
-    """Scan's own settings, then --config, then flags (later wins)."""
-    from pydantic import ValidationError
-
-    from silo_agent.config import ConfigError, ReconstructionConfig, describe_validation_error
-
-    known = ReconstructionConfig.model_fields
-    merged = {k: v for k, v in scan_settings.items() if k in known}
-    if options.config is not None:
-        merged.update(options.config.reconstruction.model_dump(exclude_unset=True))
-    if options.grid_step is not None:
-        merged["grid_step_m"] = options.grid_step
-    if options.method is not None:
-        merged["method"] = options.method
-    try:
-        return ReconstructionConfig.model_validate(merged)
-    except ValidationError as exc:
-        raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
-
-
 def process_dir(directory: Path, options: Options) -> Processed:
-    """Read, reconstruct and detect one scan directory; never raises for a bad scan."""
-    from silo_agent.config import ConfigError, DetectionConfig
-    from silo_agent.detect import ModelError, analyse
-    from silo_agent.scan import ScanError, read_scan
+    """`scan_service.process_directory` of one scan, its outcome as a line to print; never
+    raises for a bad scan."""
+    from silo_agent.config import ConfigError
+    from silo_agent.detect import ModelError
+    from silo_agent.scan import ScanError
+    from silo_agent.scan_service import process_directory
 
     name = str(directory)
-    config = options.config
     try:
-        scan = read_scan(directory)
-        settings = settings_for(scan.reconstruction, options)
-        site = scan.site
-        if config is not None:  # the config's site wins over the scan's, as for any setting
-            from silo_agent.reconstruct import site_from_config
-
-            site = site_from_config(config)
-        detection = config.detection if config is not None else DetectionConfig()
-        calibration = config.calibration if config is not None else None
-        result = analyse(scan, settings, detection, site=site, calibration=calibration)
+        _scan, result, summary = process_directory(directory, options.config, options.grid_step,
+                                                   options.method)
     except ScanError as exc:  # its message names the file already
         return Processed(name, EX_DATAERR, error=str(exc))
     except (ConfigError, ModelError) as exc:
@@ -108,10 +81,8 @@ def process_dir(directory: Path, options: Options) -> Processed:
         return Processed(name, EX_FAILED,
                          error=f"{name}: processing failed: {type(exc).__name__}: {exc}")
     if options.json:
-        output = json.dumps({**result.summary(), "scan_dir": name}, allow_nan=False)
-    else:
-        output = result.describe()
-    return Processed(name, 0, output)
+        return Processed(name, 0, json.dumps({**summary, "scan_dir": name}, allow_nan=False))
+    return Processed(name, 0, result.describe())
 
 
 def _outcomes(dirs: Sequence[Path], options: Options, jobs: int) -> Iterator[Processed]:

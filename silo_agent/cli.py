@@ -20,7 +20,6 @@ from silo_agent.exits import EX_CONFIG, EX_DATAERR
 if TYPE_CHECKING:
     from silo_agent.capture import CameraFailure
     from silo_agent.config import Config
-    from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud, Scan
 
 Handler = Callable[[argparse.Namespace], int]
@@ -109,72 +108,62 @@ def _new_scan(
     config: Config, clouds: list[CameraCloud], failures: list[CameraFailure], started: datetime
 ) -> Scan:
     """A silo-scan/1 `Scan` of one capture; the scan id is the silo and the capture's UTC time."""
-    from silo_agent import __version__
-    from silo_agent.reconstruct import site_from_config
-    from silo_agent.scan import Scan
+    from silo_agent.scan_service import new_scan, new_scan_id
 
-    silo = config.silo
-    return Scan(
-        scan_id=f"{silo.id}-{started:%Y%m%dT%H%M%SZ}",
-        captured_at=f"{started:%Y-%m-%dT%H:%M:%SZ}",
-        silo_id=silo.id,
-        site=site_from_config(config),
-        cameras=clouds,
-        reconstruction=config.reconstruction.model_dump(mode="json"),
-        extra={
-            "software_version": __version__,
-            "degraded": bool(failures),
-            "failures": [{"serial": f.serial, "error": f.error} for f in failures],
-        },
-    )
-
-
-def _previous_piles(scans: Path, scan_id: str) -> list[Pile]:
-    """Piles of the latest earlier scan kept in `scans` (its result.json), so pile ids carry
-    over; none when there is no readable earlier result."""
-    from silo_agent.detect import Pile
-
-    earlier = sorted(p for p in scans.glob("*/result.json") if p.parent.name < scan_id)
-    if not earlier:
-        return []
-    try:
-        piles = json.loads(earlier[-1].read_text(encoding="utf-8")).get("piles") or []
-        return [Pile.from_json(p) for p in piles]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        print(f"silo-agent: warning: {earlier[-1]}: no pile ids carried over: {exc}",
-              file=sys.stderr)  # fmt: skip
-        return []
+    return new_scan(config, new_scan_id(config, started, set()), started, clouds, failures)
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    """One capture through the daemon's scan path: the scan (with its config snapshot) into
+    the cache, then processed, summarised and kept exactly as the daemon does."""
+    import time
+
+    from silo_agent.audit import AuditCache
     from silo_agent.capture import capture_all
-    from silo_agent.detect import ModelError, analyse
-    from silo_agent.scan import ScanError, write_scan
+    from silo_agent.detect import ModelError
+    from silo_agent.scan import ScanError
+    from silo_agent.scan_service import (
+        CONFIG_KEY,
+        analyse_scan,
+        analysis_of,
+        keep_result,
+        new_scan,
+        new_scan_id,
+        previous_piles,
+        summarise,
+    )
 
     config = load_config(args.config)
+    cache = AuditCache(config.audit.model_copy(update={"directory": args.out})
+                       if args.out else config.audit)  # fmt: skip
     started = datetime.now(UTC)
+    clock = time.perf_counter()
     capture = capture_all(config)
+    timings = {"capture_s": time.perf_counter() - clock}
     for failure in capture.failures:
         print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
     if not capture.clouds:
         return _fail("no camera delivered a cloud; no scan written", 1)
-    scan = _new_scan(config, capture.clouds, capture.failures, started)
+    scan = new_scan(config, new_scan_id(config, started, cache.names()), started,
+                    capture.clouds, capture.failures)  # fmt: skip
     try:  # audit first: the raw scan is kept even if processing fails
-        directory = write_scan(scan, (args.out or config.audit.directory) / scan.scan_id)
+        directory = cache.write_scan(scan, scan.extra[CONFIG_KEY])
     except (ScanError, OSError) as exc:
         return _fail(f"cannot write the scan: {exc}", 1)
-    previous = _previous_piles(directory.parent, scan.scan_id)
+    previous = previous_piles(cache, scan.scan_id)
+    clock = time.perf_counter()
     try:
-        result = analyse(scan, config.reconstruction, config.detection, previous=previous,
-                         calibration=config.calibration)
+        result = analyse_scan(scan, analysis_of(scan), previous)
     except ModelError as exc:
         return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
-    summary = result.summary()
-    (directory / "result.json").write_text(json.dumps(summary, allow_nan=False, indent=2) + "\n")
+    timings["reconstruct_s"] = time.perf_counter() - clock
+    summary = summarise(result, scan, timings)
+    try:
+        keep_result(directory, summary, result, previous)
+    except OSError as exc:
+        return _fail(f"cannot keep the result with the scan in {directory}: {exc}", 1)
     if args.json:
-        report = {**summary, "scan_dir": str(directory), "degraded": capture.degraded}
-        report["failures"] = scan.extra["failures"]
-        print(json.dumps(report, allow_nan=False))
+        print(json.dumps({**summary, "scan_dir": str(directory)}, allow_nan=False))
     else:
         print(result.describe())
         print(f"scan written to {directory}" + (" (degraded)" if capture.degraded else ""))
@@ -414,12 +403,12 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from silo_agent.audit import comparable, differences
-    from silo_agent.pipeline import replay_summary
     from silo_agent.scan import ScanError
+    from silo_agent.scan_service import replay
 
     try:
         directory = _scan_dir(args.scan, args.config)
-        published, again = replay_summary(directory)
+        published, again = replay(directory)
     except ScanError as exc:
         return _fail(str(exc), EX_DATAERR)
     diff = differences(comparable(published), comparable(again))

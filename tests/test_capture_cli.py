@@ -81,7 +81,7 @@ def test_scan_end_to_end_from_playback(tmp_path: Path, capsys: pytest.CaptureFix
     directory = Path(report["scan_dir"])
     assert directory.parent == tmp_path / "scans"
     assert directory.name.startswith("silo-cli-") and directory.name.endswith("Z")
-    assert report["degraded"] is False and report["failures"] == []
+    assert report["degraded"] is False and report["cameras"]["failed"] == []
     scan = read_scan(directory)
     assert scan.scan_id == directory.name == report["scan_id"]
     assert [c.serial for c in scan.cameras] == ["CAM-A", "CAM-B"]
@@ -111,7 +111,7 @@ def test_scan_with_a_failing_camera_is_degraded(
     captured = capsys.readouterr()
     report = json.loads(captured.out)
     assert report["degraded"] is True
-    assert [f["serial"] for f in report["failures"]] == ["SHORT"]
+    assert [f["serial"] for f in report["cameras"]["failed"]] == ["SHORT"]
     assert "camera SHORT: timed out" in captured.err
     directory = Path(report["scan_dir"])
     assert directory.parent == tmp_path / "audit"
