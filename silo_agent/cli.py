@@ -15,14 +15,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from silo_agent import __version__
-from silo_agent.config import Config, ConfigError, config_warnings, load_config
 from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.exits import DATA_ERROR as EX_DATAERR
 from silo_agent.exits import FAILURE, INTERRUPTED, OK, USAGE
 
 if TYPE_CHECKING:
     from silo_agent.capture import CameraFailure
+    from silo_agent.config import Config
     from silo_agent.scan import CameraCloud, Scan
 
 Handler = Callable[[argparse.Namespace], int]
@@ -33,10 +32,40 @@ def _fail(message: str, status: int) -> int:
     return status
 
 
+def load_config(path: Path, service: bool = False) -> Config:
+    """The validated config file; pydantic and the config models load here, on first use,
+    not at start-up (about 0.1 s that `process` without --config and `--help` never pay)."""
+    from silo_agent.config import load_config as load
+
+    return load(path, service=service)
+
+
+def _configure_logging(args: argparse.Namespace) -> None:
+    """structlog set up for the command's --log-level (structlog loads here, not at start)."""
+    from silo_agent.log import configure_logging
+
+    configure_logging(args.log_level)
+
+
+class _VersionAction(argparse.Action):
+    """--version, reading the installed version only when asked (importlib.metadata is slow)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, help="show the version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *_args: object) -> None:
+        from silo_agent import __version__
+
+        print(f"silo-agent {__version__}")
+        parser.exit()
+
+
 # ---------------------------------------------------------------- check-config
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
+    from silo_agent.config import config_warnings
+
     config = load_config(args.file, service=True)
     for warning in config_warnings(config):
         print(f"silo-agent: warning: {args.file}: {warning}", file=sys.stderr)
@@ -48,23 +77,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from silo_agent.detect import ModelError
-    from silo_agent.scan import ScanError
-    from silo_agent.scan_service import process_directory
+    from silo_agent import batch
 
     config = load_config(args.config) if args.config else None
-    try:
-        _scan, result, summary = process_directory(args.scan_dir, config, args.grid_step,
-                                                   args.method)
-    except ScanError as exc:
-        return _fail(str(exc), EX_DATAERR)
-    except ModelError as exc:
-        return _fail(str(exc), EX_CONFIG)
-    if args.json:
-        print(json.dumps(summary, allow_nan=False))
-    else:
-        print(result.describe())
-    return OK
+    if config is not None and config.detection.onnx is not None:
+        _configure_logging(args)  # the ONNX detector logs; nothing else on this path does
+    options = batch.Options(config, args.grid_step, args.method, args.json)
+    return batch.run(args.scan_dirs, options, args.jobs)
 
 
 # ---------------------------------------------------------------- cameras
@@ -380,6 +399,8 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
     if path.is_dir():
         return path
     if config_path is None:
+        from silo_agent.config import ConfigError
+
         raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
     from silo_agent.audit import AuditCache
 
@@ -456,7 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="silo-agent", description="Grain silo inventory from RealSense depth cameras."
     )
-    parser.add_argument("--version", action="version", version=f"silo-agent {__version__}")
+    parser.add_argument("--version", action=_VersionAction)
     parser.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning", "error"]
     )
@@ -484,15 +505,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", type=Path)
     p.set_defaults(handler=cmd_check_config)
 
-    p = sub.add_parser("process", help="reconstruct a silo-scan/1 directory offline")
-    p.add_argument("scan_dir", type=Path, metavar="SCAN_DIR")
+    p = sub.add_parser("process", help="reconstruct silo-scan/1 directories offline")
+    p.add_argument("scan_dirs", type=Path, nargs="+", metavar="DIR",
+                   help="a scan directory, or a directory of them (an audit cache)")
     p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
     p.add_argument("--grid-step", type=float, metavar="METRES")
     p.add_argument(
         "--method", choices=["bicm", "rectangle", "alpha", "poisson", "hull"],
         help="reconstruction method (baselines for comparison); default bicm",
     )
-    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object per scan, one per line, with its scan_dir")
+    p.add_argument("--jobs", type=_positive, default=1, metavar="N",
+                   help="process N scans at a time in worker processes (default 1)")
     p.set_defaults(handler=cmd_process)
 
     p = sub.add_parser("devices", help="list connected RealSense cameras")
@@ -556,21 +581,22 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from silo_agent.heap import keep_freed_memory
-    from silo_agent.log import configure_logging
 
     keep_freed_memory()
-    configure_logging(args.log_level)
     handler: Handler = args.handler
+    if handler is not cmd_process:  # process sets logging up itself, only when it will log
+        _configure_logging(args)
     try:
         return handler(args)
-    except ConfigError as exc:
-        return _fail(str(exc), EX_CONFIG)
     except KeyboardInterrupt:
         return INTERRUPTED
     except Exception as exc:  # bad input met where no command expected it: still one line
+        from silo_agent.config import ConfigError  # loaded already if one was raised
         from silo_agent.limits import LimitExceeded
         from silo_agent.scan import ScanError
 
+        if isinstance(exc, ConfigError):
+            return _fail(str(exc), EX_CONFIG)
         if isinstance(exc, ScanError | LimitExceeded):
             return _fail(str(exc), EX_DATAERR)
         raise

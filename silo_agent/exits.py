@@ -1,4 +1,5 @@
-"""Exit statuses of every `silo-agent` command, in one place (sysexits.h where one fits).
+"""Exit statuses of every `silo-agent` command, in one place (sysexits.h where one fits); no
+imports, so any command can name them without loading pydantic or numpy.
 
 systemd's `RestartPreventExitStatus=` lists DATA_ERROR and CONFIG_ERROR: restarting cannot fix
 a bad file, so the unit stays failed until someone edits it.

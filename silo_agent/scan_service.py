@@ -6,6 +6,9 @@ scan itself (`analysis_of`), so a later `replay` processes it exactly as it was 
 it was published, `[calibration]` included. Every path builds its summary with `summarise`
 (the shape `telemetry.payloads.ScanPayload` validates, plus the engine's details) and keeps it
 with `keep_result`, atomically, through the audit cache.
+
+`process` goes through here too, so structlog, the audit cache and the version lookup are
+imported where they are used, not at the top: a one-off `process` never needs them.
 """
 
 from __future__ import annotations
@@ -16,11 +19,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-import structlog
 from pydantic import BaseModel, ValidationError
 
-from silo_agent import __version__
-from silo_agent.audit import INPUTS, RESULT, AuditCache
 from silo_agent.config import (
     CalibrationConfig,
     Config,
@@ -32,12 +32,11 @@ from silo_agent.config import (
 from silo_agent.scan import MANIFEST, Scan, ScanError, Site, read_scan
 
 if TYPE_CHECKING:
+    from silo_agent.audit import AuditCache
     from silo_agent.capture import CameraFailure
     from silo_agent.detect import Pile
     from silo_agent.reconstruct import Result
     from silo_agent.scan import CameraCloud
-
-log = structlog.get_logger(__name__)
 
 Model = TypeVar("Model", bound=BaseModel)
 
@@ -66,6 +65,7 @@ def new_scan_id(config: Config, started: datetime, taken: set[str]) -> str:
 def new_scan(config: Config, scan_id: str, started: datetime, clouds: list[CameraCloud],
              failures: list[CameraFailure]) -> Scan:
     """A silo-scan/1 `Scan` of one capture, carrying the config snapshot it is processed with."""
+    from silo_agent import __version__
     from silo_agent.reconstruct import site_from_config
 
     return Scan(
@@ -143,6 +143,7 @@ def summarise(result: Result, scan: Scan, timings: dict[str, float]) -> dict[str
 def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
     """Piles of the latest cached scan before `scan_id` with a result, so pile ids carry over;
     none when there is no readable one. Ids are `<silo>-<UTC time>`: they sort by time."""
+    from silo_agent.audit import RESULT
     from silo_agent.detect import Pile
 
     for entry in reversed(cache.entries()):
@@ -154,7 +155,10 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
         except FileNotFoundError:
             continue
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            log.warning("no pile ids carried over", scan_id=entry.scan_id, error=str(exc))
+            import structlog
+
+            structlog.get_logger(__name__).warning("no pile ids carried over",
+                                                   scan_id=entry.scan_id, error=str(exc))
             return []
     return []
 
@@ -162,6 +166,8 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
 def keep_result(directory: Path, summary: dict[str, Any], result: Result,
                 previous: list[Pile]) -> None:
     """The summary, height map and processing inputs next to the scan, each written atomically."""
+    from silo_agent.audit import AuditCache
+
     inputs = {"previous_piles": [p.to_json() for p in previous]}
     AuditCache.add_result(directory, summary, result.heightmap, inputs)
 
@@ -182,6 +188,7 @@ def process_directory(directory: Path, config: Config | None = None,
 def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """(published, replayed) results of a cached scan, processed again exactly as it was
     processed: its own analysis arguments and the previous piles that gave pile ids."""
+    from silo_agent.audit import INPUTS, RESULT
     from silo_agent.detect import Pile
 
     scan = read_scan(directory)

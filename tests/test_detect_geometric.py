@@ -188,3 +188,24 @@ def test_scan_carries_pile_ids_over_from_the_latest_earlier_result(tmp_path) -> 
         pile(2, 1.0, 1.0), pile(5, 2.0, 0.0, "onnx")
     ]  # fmt: skip
     assert previous_piles(cache, "silo-1-20251231T000000Z") == []
+
+
+def test_basin_peaks_are_ndimage_maximum_and_its_position_ties_included() -> None:
+    from scipy import ndimage
+
+    from silo_agent.detect.geometric import _basin_peaks
+
+    rng = np.random.default_rng(3)
+    for trial in range(50):
+        shape = (int(rng.integers(5, 40)), int(rng.integers(5, 40)))
+        values = (rng.integers(0, 4, shape).astype(float) if trial % 2  # many ties
+                  else rng.normal(size=shape))  # fmt: skip
+        values[rng.random(shape) < 0.2] = np.nan  # outside the region, label 0
+        labels = rng.integers(1, 9, shape)
+        labels[np.isnan(values)] = 0
+        count = int(labels.max())
+        index = np.arange(1, count + 1)
+        peaks, where = _basin_peaks(values, labels, count)
+        assert np.array_equal(peaks, ndimage.maximum(values, labels, index=index))
+        expected = ndimage.maximum_position(values, labels, index=index)
+        assert [tuple(w) for w in where.tolist()] == [tuple(map(int, e)) for e in expected]

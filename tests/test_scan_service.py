@@ -47,6 +47,7 @@ def test_cli_scan_replays_identical_and_keeps_the_published_shape(
     # `process` of the same directory goes the same way: the same summary, nothing written
     assert main(["process", str(directory), "--json"]) == 0
     processed = json.loads(capsys.readouterr().out)
+    assert processed.pop("scan_dir") == str(directory)  # which scan, in a batch's JSON Lines
     assert comparable(processed) == comparable(kept)
 
 

@@ -1,0 +1,144 @@
+"""`silo-agent process` over many scan directories in one process, and a lean start."""
+
+from __future__ import annotations
+
+import json
+import os
+import pty
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from conftest import run_cli
+
+from silo_agent.config import ReconstructionConfig
+from silo_agent.reconstruct import reconstruct
+from silo_agent.scan import Scan, write_scan
+
+STEP = "0.05"  # coarse: these tests are about the batch, not the surface
+
+
+@pytest.fixture
+def two_scans(tmp_path: Path, cone_scan_4: Scan, cone_scan_2: Scan) -> list[Path]:
+    return [write_scan(replace(cone_scan_4, scan_id="four"), tmp_path / "a-four"),
+            write_scan(replace(cone_scan_2, scan_id="two"), tmp_path / "c-two")]  # fmt: skip
+
+
+def _lines(stdout: str) -> list[dict]:
+    return [json.loads(line) for line in stdout.splitlines()]
+
+
+def _without_timings(results: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "timings_s"} for r in results]
+
+
+def test_a_bad_directory_in_the_middle_fails_alone(tmp_path, two_scans: list[Path]) -> None:
+    bad = tmp_path / "b-broken"
+    bad.mkdir()
+    (bad / "scan.json").write_text("{not json")
+    done = run_cli("process", str(two_scans[0]), str(bad), str(two_scans[1]), "--json",
+                   "--grid-step", STEP)  # fmt: skip
+    assert done.returncode == 65, done.stderr
+    results = _lines(done.stdout)
+    assert [r["scan_dir"] for r in results] == [str(two_scans[0]), str(two_scans[1])]
+    assert [r["scan_id"] for r in results] == ["four", "two"]
+    errors = done.stderr.splitlines()
+    assert "Traceback" not in done.stderr
+    assert len(errors) == 2, done.stderr
+    assert str(bad / "scan.json") in errors[0] and "not valid JSON" in errors[0]
+    assert errors[1] == "silo-agent: 2 of 3 scans processed, 1 failed"
+
+
+def test_each_json_line_is_the_scans_own_result(two_scans: list[Path],
+                                                cone_scan_4: Scan, cone_scan_2: Scan) -> None:
+    done = run_cli("process", *map(str, two_scans), "--json", "--grid-step", STEP)
+    assert done.returncode == 0, done.stderr
+    results = _lines(done.stdout)
+    settings = ReconstructionConfig(grid_step_m=float(STEP))
+    for result, scan in zip(results, [cone_scan_4, cone_scan_2], strict=True):
+        assert result["volume_m3"] == reconstruct(scan, settings).volume_m3
+    assert done.stderr.splitlines() == ["silo-agent: 2 of 2 scans processed"]
+
+
+def test_a_directory_of_scans_is_processed_scan_by_scan(tmp_path, two_scans) -> None:
+    (tmp_path / "alarm-state.json").write_text("{}")  # what else lives in an audit cache
+    (tmp_path / ".c-two.tmp").mkdir()  # a scan being written
+    done = run_cli("process", str(tmp_path), "--json", "--grid-step", STEP)
+    assert done.returncode == 0, done.stderr
+    assert [r["scan_dir"] for r in _lines(done.stdout)] == [str(d) for d in two_scans]
+
+
+def test_jobs_give_the_same_results_in_the_same_order(two_scans: list[Path]) -> None:
+    args = ["process", *map(str, two_scans), *map(str, two_scans), "--json", "--grid-step", STEP]
+    one = run_cli(*args)
+    two = run_cli(*args, "--jobs", "2")
+    assert one.returncode == two.returncode == 0, two.stderr
+    assert len(_lines(two.stdout)) == 4
+    assert _without_timings(_lines(two.stdout)) == _without_timings(_lines(one.stdout))
+
+
+def test_a_bad_config_stops_before_any_scan(tmp_path, two_scans: list[Path]) -> None:
+    config = tmp_path / "agent.toml"
+    config.write_text("[silo]\nid = 'bad id with spaces'\n")
+    done = run_cli("process", *map(str, two_scans), "--config", str(config), "--json")
+    assert done.returncode == 78
+    assert done.stdout == ""
+    assert str(config) in done.stderr
+
+
+def _stderr_on_a_terminal(*args: str) -> tuple[int, str]:
+    """Run the CLI with stderr on a pseudo-terminal; (status, what the terminal showed)."""
+    leader, follower = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "silo_agent", *args],
+                            stdout=subprocess.DEVNULL, stderr=follower)  # fmt: skip
+    os.close(follower)
+    shown = b""
+    while True:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:  # EIO: the child closed the terminal
+            break
+        if not chunk:
+            break
+        shown += chunk
+    os.close(leader)
+    return proc.wait(timeout=120), shown.decode()
+
+
+def test_a_progress_bar_on_a_terminal_only(tmp_path, two_scans: list[Path]) -> None:
+    dirs = [str(two_scans[0])] * 5
+    status, shown = _stderr_on_a_terminal("process", *dirs, "--grid-step", STEP)
+    assert status == 0, shown
+    assert "] 5/5 a-four" in shown and "] 1/5 a-four" in shown
+    piped = run_cli("process", *dirs, "--grid-step", STEP)
+    assert "/5 " not in piped.stderr and "\r" not in piped.stderr
+    status, shown = _stderr_on_a_terminal("process", *dirs[:2], "--grid-step", STEP)
+    assert "/2 " not in shown  # two scans: no bar
+
+
+HEAVY = ["structlog", "asyncio", "open3d", "sklearn", "onnxruntime", "pyrealsense2",
+         "paho", "apscheduler", "silo_agent.telemetry", "silo_agent.capture",
+         "silo_agent.calibrate", "silo_agent.sim", "silo_agent.log"]  # fmt: skip
+
+
+def _imported(code: str) -> set[str]:
+    done = subprocess.run([sys.executable, "-c", code + "\nimport sys\nprint(*sys.modules)"],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return set(done.stdout.split())
+
+
+def test_process_imports_only_what_its_path_needs(scan_dir: Path) -> None:
+    loaded = _imported("from silo_agent.cli import main\n"
+                       f"assert main(['process', {str(scan_dir)!r}, '--json']) == 0")  # fmt: skip
+    assert {"silo_agent.reconstruct", "silo_agent.detect"} <= loaded  # it did the work
+    assert loaded.isdisjoint(HEAVY), sorted(loaded & set(HEAVY))
+
+
+def test_process_help_imports_no_numeric_library() -> None:
+    loaded = _imported("from silo_agent.cli import main\n"
+                       "try:\n    main(['process', '--help'])\nexcept SystemExit:\n    pass")
+    heavy = {"numpy", "scipy", "pydantic", "importlib.metadata", *HEAVY}
+    assert loaded.isdisjoint(heavy), sorted(loaded & heavy)
