@@ -22,6 +22,7 @@ import structlog
 
 from silo_agent.audit import AuditCache
 from silo_agent.config import Config, ConfigError, load_config
+from silo_agent.live.agent import LiveControl
 from silo_agent.metrics import Metrics
 from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
 from silo_agent.sdnotify import Notifier
@@ -77,6 +78,7 @@ class Agent:
         self._done = 0
         self._last: Outcome | None = None
         self._scheduler = None
+        self.live = LiveControl(config, self.telemetry, self._wake)
 
     @property
     def last_outcome(self) -> Outcome | None:
@@ -244,6 +246,7 @@ class Agent:
             log.warning("config reloaded; [metrics] changes need a restart")
         with self._lock:
             self.config = new
+            self.live.config = new
             self.pipeline.config = new
             self.cache.cfg = new.audit
             self.cache.directory = Path(new.audit.directory)
@@ -269,6 +272,7 @@ class Agent:
         self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
         self.metrics.serve(config.metrics)
         self.telemetry.on_scan_request(self._requested)
+        self.telemetry.on_live_command(self.live.requested)
         self.telemetry.start()
         self._start_scheduler()
         if config.schedule.scan_at_start:
@@ -293,6 +297,7 @@ class Agent:
                 self._do_reload()
             with self._lock:
                 ready = bool(self._pending) and self._running is None
+            self.live.tend(scan_due=ready or self._running is not None)  # a full scan wins
             if ready:
                 self._start_scan()
             timeout = LOOP_S  # sleep no later than the next watchdog ping is due
@@ -311,6 +316,7 @@ class Agent:
         self.notifier.stopping()
         log.info("agent stopping")
         self._stop_scheduler()
+        self.live.close()
         running = self._running
         if running is not None and running.thread.is_alive():
             log.info("waiting for the running scan", scan_id=running.scan_id,

@@ -1,10 +1,11 @@
 """A moving scene: a leveling robot drives a straight path across a walled bay and rakes it.
 
-The robot is a box (0.6 x 0.4 x 0.3 m) whose blade, the width of the robot, cuts every grain
-surface it passes down to `rake_z`: behind the blade the surface is min(original, rake_z),
-ahead of it untouched. Position, heading and the raked surface are closed-form functions of
-time, so a test knows the exact surface and the robot's footprint at the instant a frame is
-rendered, and the changed cells are exactly those where the blade cut something.
+The robot is a box (0.6 x 0.4 x 0.3 m) dragging a rake, the width of the robot, at its rear
+edge: behind the rake the grain is cut down to `rake_z` across the rake's width and slumps at
+its angle of repose beside it (min(original, rake_z + slope * distance beyond the rake's
+edge)); under and ahead of the robot it is untouched. Position, heading and the raked surface
+are closed-form functions of time, so a test knows the exact surface and the robot's footprint
+at the instant a frame is rendered, and the changed cells are exactly those the rake cut.
 """
 
 from __future__ import annotations
@@ -21,11 +22,11 @@ from silo_agent.sim.layouts import view_pose
 from silo_agent.sim.mesh import CLUTTER, Mesh, World, height_field_mesh
 from silo_agent.sim.raycast import Raycaster
 from silo_agent.sim.scenes import (
-    BAY_EXTENT,
-    BAY_HALF,
+    BAY_CAMERA_Z,
+    BAY_CEILING_Z,
+    BAY_WALL_TOP,
     HeightField,
     Scene,
-    _bay,
     cone_height,
     segment_distance,
     square,
@@ -37,24 +38,31 @@ LEVEL_M = 0.8  # flat grain in the bay
 MOUNDS = (((-1.0, -0.55), 0.9), ((0.9, 0.6), 0.8))  # centre, radius: spout heaps to level
 PATH = ((-2.4, -1.5), (2.4, 1.5))  # the robot drives a -> b
 SPEED_M_S = 0.3
+REGION_HALF_M = 3.0  # the live map's 6 x 6 m
+WALL_MARGIN_M = 0.5  # between the region and the walls
 RAKE_CLEARANCE_M = 0.02  # the blade leaves this much above the flat level
 _NOISE_STREAM = 7  # random stream of the moving scene's frames (simulate.rng_for)
 
 
 def mounded_bay(g: Grain) -> Scene:
-    """The walled 6 x 6 m bay at LEVEL_M with two heaps at the angle of repose: what a
-    leveling robot is sent in to flatten."""
+    """A walled bay at LEVEL_M with two heaps at the angle of repose, what a leveling robot is
+    sent in to flatten; the 6 x 6 m region stops WALL_MARGIN_M short of the walls (scenes.py:
+    depth noise scatters wall points into the bay, 0.3 m there with a smaller region)."""
+    half = REGION_HALF_M + WALL_MARGIN_M
 
-    def level(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         heaps = np.max(np.stack([cone_height(x, y, c, r, g.slope) for c, r in MOUNDS]), axis=0)
-        return LEVEL_M + heaps
+        inside = (np.abs(x) <= half + 1e-9) & (np.abs(y) <= half + 1e-9)
+        return np.where(inside, LEVEL_M + heaps, BAY_WALL_TOP)
 
-    site = Site(region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.8,
+    site = Site(region=square(REGION_HALF_M), floor_z=0.0, ceiling_z=BAY_CEILING_Z,
                 bulk_density_t_m3=g.density_t_m3)
+    edge = half + 0.1
     return Scene(
-        name="mounded-bay", grain=g, site=site, height=_bay(level, 3.0), extent=BAY_EXTENT,
+        name="mounded-bay", grain=g, site=site, height=height, extent=(-edge, edge, -edge, edge),
         outer_z=None, volume_m3=float("nan"), target=(0.0, 0.0, LEVEL_M), layout="wall",
-        wall_half_m=BAY_HALF, wall_camera_z=2.6, params={"level": LEVEL_M, "mounds": MOUNDS},
+        wall_half_m=half, wall_camera_z=BAY_CAMERA_Z,
+        params={"level": LEVEL_M, "mounds": MOUNDS},
     )
 
 
@@ -93,25 +101,24 @@ class RakingRobot:
         """Distance of the robot's centre from the path's start at time t (stops at its end)."""
         return float(np.clip(self.speed_m_s * t, 0.0, self._direction[1]))
 
-    def blade(self, t: float) -> tuple[float, float]:
-        """Where the front edge (the blade) is at time t."""
+    def rake(self, t: float) -> tuple[float, float]:
+        """Where the rear edge (the rake) is at time t."""
         unit, _ = self._direction
-        reach = self.travelled(t) + ROBOT_SIZE_M[0] / 2
+        reach = max(0.0, self.travelled(t) - ROBOT_SIZE_M[0] / 2)
         return tuple(np.asarray(self.path[0]) + unit * reach)  # type: ignore[return-value]
 
     def height(self, t: float) -> HeightField:
         """The grain surface at time t: the base, cut down to rake_z along the swept swath."""
-        start, blade = self.path[0], self.blade(t)
+        start, rake = self.path[0], self.rake(t)
         half = ROBOT_SIZE_M[1] / 2
         original = self.base.height
 
         def surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
             h = original(x, y)
-            swept = segment_distance(x, y, start, blade) <= half
-            inside = (np.abs(x) <= BAY_HALF) & (np.abs(y) <= BAY_HALF)
-            return np.where(swept & inside, np.minimum(h, self.rake_z), h)
+            beyond = np.maximum(segment_distance(x, y, start, rake) - half, 0.0)
+            return np.minimum(h, self.rake_z + self.base.grain.slope * beyond)
 
-        return surface
+        return surface if rake != tuple(start) else original
 
     def pose(self, t: float) -> RobotPose:
         unit, _ = self._direction
@@ -144,10 +151,13 @@ class RobotRig:
 
     def __init__(self, robot: RakingRobot | None = None, views: tuple[str, ...] = (
             "A2", "A4", "A6", "A8"), seed: int = 0, width: int = 848, height: int = 480,
-            noise: NoiseModel | None = None) -> None:  # fmt: skip
+            noise: NoiseModel | None = None, mesh_step: float = 0.01) -> None:  # fmt: skip
+        """`mesh_step` 0.01 m keeps the rendered surface within a millimetre of the truth;
+        coarser builds the moving world faster (the daemon's demo, not the accuracy tests)."""
         self.robot = robot or RakingRobot(mounded_bay(grain("wheat")))
         self.noise = noise or NoiseModel()
         self.seed = seed
+        self.mesh_step = mesh_step
         self.views: list[SimView] = [
             plan_view(v, serial_for(v), view_pose(self.robot.base, v, "wall"), seed, (0.0, 0.0),
                       width, height)
@@ -156,6 +166,6 @@ class RobotRig:
 
     def frames(self, t: float, index: int = 0) -> list[Frame]:
         """Every camera's frame at time t (`index` numbers the frame for its noise draw)."""
-        raycaster = Raycaster(self.robot.world(t))
+        raycaster = Raycaster(self.robot.world(t, self.mesh_step))
         return [expose(trace(raycaster, v.true, v.intrinsics), self.noise,
                        rng_for(self.seed, v.key, _NOISE_STREAM, index)) for v in self.views]

@@ -30,15 +30,31 @@ Layout, little-endian:
                  0 = filled by interpolation or unknown
            I     zlib(uint8[rows, cols] round(inside * 255)): fraction of the cell inside the region
 
+Live maps (`P/heightmap/live`) set flag bit 2 (FLAG_LIVE) and append, after the inside blob:
+
+    4      sequence (uint32), +1 per live map of the agent, wrapping at 2**32
+    4      metadata length M (uint32)
+    M      metadata, UTF-8 JSON object (time, session, robots, rate)
+    1      layer count L (uint8), then per layer:
+    1        name length N (uint8)
+    N        name, UTF-8 ("changed": since the previous live map, "held": the robot's footprint
+             plus margin, whose cells keep their last good value)
+    4        blob length B (uint32)
+    B        zlib(numpy.packbits(layer, bitorder="big")), row-major, 1 = set
+
+`decode_heightmap` reads the height map of either kind; `decode_live_heightmap` the rest too.
+
 Heights are rounded to the millimetre, so a decoded height is within 0.5 mm of the published
 one; unknown cells decode to NaN.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import struct
 import zlib
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -50,6 +66,8 @@ ENCODING_UINT16_MM = 1
 FILTER_ROW_DELTA = 1
 FLAG_ROW0_MIN_Y = 1
 FLAG_ORIGIN_OUTER_CORNER = 2
+FLAG_LIVE = 4
+LIVE_HEADER = struct.Struct("<II")
 UNKNOWN = 0xFFFF
 FRAME_ID = "silo"
 HEADER = struct.Struct("<4sBBBBIIddddHHHIII")
@@ -60,7 +78,8 @@ class HeightMapFormatError(ValueError):
     """Bytes that are not a height map this decoder understands."""
 
 
-def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> bytes:
+def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
+                     flags: int = 0) -> bytes:
     """Encode a height map; raises ValueError if its heights span more than 65.534 m."""
     heights = np.asarray(hm.heights, dtype=np.float64)
     rows, cols = heights.shape
@@ -89,7 +108,7 @@ def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> b
         VERSION,
         ENCODING_UINT16_MM,
         FILTER_ROW_DELTA,
-        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER,
+        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER | flags,
         rows,
         cols,
         float(hm.step),
@@ -106,8 +125,75 @@ def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> b
     return b"".join([header, frame, scan, heights_blob, observed_blob, inside_blob])
 
 
+def _packed(mask: np.ndarray) -> bytes:
+    return zlib.compress(np.packbits(np.asarray(mask, dtype=bool).ravel(), bitorder="big")
+                         .tobytes(), 9)  # fmt: skip
+
+
+def encode_live_heightmap(hm: HeightMap, session_id: str, sequence: int, meta: dict,
+                          layers: dict[str, np.ndarray]) -> bytes:
+    """A live map: the SLHM height map with FLAG_LIVE, then sequence, metadata and bit layers."""
+    parts = [encode_heightmap(hm, session_id, flags=FLAG_LIVE)]
+    text = json.dumps(meta, separators=(",", ":")).encode()
+    parts.append(LIVE_HEADER.pack(sequence % 2**32, len(text)) + text + bytes([len(layers)]))
+    for name, mask in layers.items():
+        if np.shape(mask) != hm.shape:
+            raise ValueError(f"layer {name!r} is {np.shape(mask)}, the map {hm.shape}")
+        blob, label = _packed(mask), name.encode()
+        parts.append(bytes([len(label)]) + label + struct.pack("<I", len(blob)) + blob)
+    return b"".join(parts)
+
+
+@dataclass(frozen=True)
+class LiveHeightMap:
+    """A decoded `P/heightmap/live` message."""
+
+    heightmap: HeightMap
+    session_id: str
+    sequence: int
+    meta: dict
+    layers: dict[str, np.ndarray]
+
+
+def decode_live_heightmap(data: bytes) -> LiveHeightMap:
+    """Decode a live map; HeightMapFormatError if it is not one or is cut short."""
+    hm, session_id, _frame, end = _decode(data)
+    if not HEADER.unpack_from(data)[4] & FLAG_LIVE:
+        raise HeightMapFormatError("not a live height map (flag bit 2 clear)")
+    try:
+        sequence, meta_len = LIVE_HEADER.unpack_from(data, end)
+        pos = end + LIVE_HEADER.size
+        meta = json.loads(data[pos : pos + meta_len])
+        pos += meta_len
+        count = data[pos]
+        pos += 1
+        layers = {}
+        for _ in range(count):
+            n = data[pos]
+            name = data[pos + 1 : pos + 1 + n].decode()
+            (size,) = struct.unpack_from("<I", data, pos + 1 + n)
+            pos += 5 + n
+            bits = np.unpackbits(np.frombuffer(zlib.decompress(data[pos : pos + size]), np.uint8),
+                                 count=hm.heights.size, bitorder="big")  # fmt: skip
+            layers[name] = bits.reshape(hm.shape).astype(bool)
+            pos += size
+    except (struct.error, IndexError, ValueError, zlib.error) as exc:
+        raise HeightMapFormatError(f"corrupt live map extension: {exc}") from None
+    if pos != len(data):
+        raise HeightMapFormatError(f"length mismatch: live map ends at {pos}, got {len(data)}")
+    return LiveHeightMap(hm, session_id, sequence, meta, layers)
+
+
 def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
-    """Decode to (height map, scan id, frame id)."""
+    """Decode to (height map, scan id, frame id); a live map's extension is not read."""
+    hm, scan_id, frame, end = _decode(data)
+    if end != len(data) and not HEADER.unpack_from(data)[4] & FLAG_LIVE:
+        raise HeightMapFormatError(f"length mismatch: header says {end} bytes, got {len(data)}")
+    return hm, scan_id, frame
+
+
+def _decode(data: bytes) -> tuple[HeightMap, str, str, int]:
+    """(height map, scan id, frame id, offset where the SLHM layers end)."""
     if len(data) < HEADER.size or data[:4] != MAGIC:
         raise HeightMapFormatError("not an SLHM height map (bad magic or too short)")
     (
@@ -118,7 +204,7 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
         raise HeightMapFormatError(
             f"unsupported SLHM version {version} / encoding {encoding} / filter {filt}"
         )
-    if flags != FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER:
+    if flags & ~FLAG_LIVE != FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER:
         raise HeightMapFormatError(f"unsupported SLHM flags {flags:#x}")
     pos = HEADER.size
     frame = data[pos : pos + f_len].decode()
@@ -129,7 +215,7 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
     for length in (h_len, o_len, i_len):
         blobs.append(data[pos : pos + length])
         pos += length
-    if pos != len(data):
+    if pos > len(data):
         raise HeightMapFormatError(f"length mismatch: header says {pos} bytes, got {len(data)}")
     try:
         raw = [zlib.decompress(b) for b in blobs]
@@ -150,7 +236,7 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
         observed=observed.reshape(rows, cols).astype(bool),
         inside=inside,
     )
-    return hm, scan_id, frame
+    return hm, scan_id, frame, pos
 
 
 def decode_heightmap(data: bytes) -> HeightMap:

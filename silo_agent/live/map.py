@@ -1,0 +1,249 @@
+"""The incremental live height map. Pure numpy: depth frames in, a map with its layers out.
+
+A full scan takes a 9-frame median per camera and clusters every cell's points; a robot moves
+between those frames, and the work is far too much for 2 maps a second. Here every map costs one
+pass over the newest frame of each camera:
+
+- every valid depth pixel goes to its cell through a ray table precomputed per camera (silo
+  frame, z = 1 scale), so a point costs three multiply-adds; the frame's cell height is the
+  mean of its points;
+- each cell keeps a running value: an exponential average of its frame heights (noise down by
+  sqrt(smoothing / (2 - smoothing))), replaced by the frame height when two frames in a row
+  are more than `reset_m` away on the same side (the rake just cut it: a moving scene cannot
+  wait for an average to catch up; one noisy frame does not count);
+- the robot is found from depth alone, as a compact object with steep sides standing at least
+  `robot_min_height_m` above the local surface (a morphological top-hat wider than the robot,
+  grain never rising more steeply than its angle of repose); its cells and the disc of
+  `robot_radius_m` around their centre (a robot on a slope shows less than its whole top), plus
+  `robot_margin_m`, are held at their last good value and marked in the `held` layer;
+- `changed` marks the cells more than `change_m` from the value they had when last reported
+  changed, so a slow drift is reported once it adds up, not lost under the threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from silo_agent.config import LiveConfig
+from silo_agent.heightmap import HeightMap
+from silo_agent.reconstruct.grid import Grid
+
+ROBOT_STEEP_M = 0.12  # rise of the top-hat within 2 cells that no grain slope makes
+ROBOT_MIN_STEEP_CELLS = 20  # of a robot's ~100 edge cells at a 2 cm grid
+ROBOT_AREA_M2 = (0.04, 1.0)  # a robot's top, its noisy edge, a heap's tip it stands on
+ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the opening removes it
+MIN_POINTS = 1  # a frame's cell height needs this many points
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """One camera's newest depth image and where the camera is."""
+
+    serial: str
+    depth: np.ndarray  # (H, W) uint16, 0 = invalid
+    depth_unit_m: float
+    fx: float
+    fy: float
+    ppx: float
+    ppy: float
+    extrinsic: np.ndarray  # 4x4 camera -> silo
+
+
+@dataclass(frozen=True)
+class RobotSighting:
+    """Where the robot is: centroid of its raised cells, its top, and their extent."""
+
+    x: float
+    y: float
+    top_z: float
+    radius_m: float  # of the disc around its cells, margin not included
+    cells: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {"x": round(self.x, 3), "y": round(self.y, 3), "top_z": round(self.top_z, 3),
+                "radius_m": round(self.radius_m, 3), "cells": self.cells}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class LiveUpdate:
+    """One live map: the height map (observed = measured this session and not held), the
+    cells changed since the previous map, the held (robot) cells, the robots, a sequence."""
+
+    sequence: int
+    heightmap: HeightMap
+    changed: np.ndarray
+    held: np.ndarray
+    robots: list[RobotSighting]
+
+
+def nearest_filled(values: np.ndarray) -> np.ndarray:
+    """`values` with every NaN taken from its nearest finite cell: a hole's edge value, not a
+    guess across it (the `observed` layer says which cells are measured)."""
+    known = np.isfinite(values)
+    if known.all() or not known.any():
+        return values
+    nearest = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
+    return values[tuple(nearest)]
+
+
+class _Rays:
+    """Silo-frame ray of every (decimated) pixel of one camera, scaled to unit depth."""
+
+    def __init__(self, frame: DepthFrame, decimation: int) -> None:
+        h, w = frame.depth.shape
+        v, u = np.mgrid[0:h:decimation, 0:w:decimation]
+        rotation = np.asarray(frame.extrinsic, dtype=np.float64)[:3, :3]
+        camera = np.stack([(u - frame.ppx) / frame.fx, (v - frame.ppy) / frame.fy,
+                           np.ones(u.shape)], axis=-1).reshape(-1, 3)
+        silo = camera @ rotation.T
+        self.x, self.y, self.z = (np.ascontiguousarray(silo[:, k], dtype=np.float32)
+                                  for k in range(3))
+        self.origin = np.asarray(frame.extrinsic, dtype=np.float32)[:3, 3]
+        self.key = (frame.depth.shape, frame.fx, frame.fy, frame.ppx, frame.ppy,
+                    np.asarray(frame.extrinsic).tobytes())
+
+
+class LiveMap:
+    """Per-cell state of one live session over `grid`; `update(frames)` makes the next map."""
+
+    def __init__(self, grid: Grid, settings: LiveConfig, ceiling_z: float | None = None,
+                 start: HeightMap | None = None) -> None:  # fmt: skip
+        """`start`, the last full scan's map on the same grid, gives cells not yet seen live a
+        value; without it they take their nearest seen cell's."""
+        self.grid = grid
+        self.settings = settings
+        self.ceiling_z = np.inf if ceiling_z is None else ceiling_z
+        self.region = grid.inside > 0
+        self.height = np.full(grid.shape, np.nan)
+        if start is not None and start.heights.shape == grid.shape:
+            self.height = np.where(self.region, start.heights, np.nan).astype(np.float64)
+        self.seen = np.zeros(grid.shape, dtype=bool)
+        self.reported = np.full(grid.shape, np.nan)
+        self.held = np.zeros(grid.shape, dtype=bool)
+        self.jumped = np.zeros(grid.shape, dtype=np.int8)  # last frame's side beyond reset_m
+        self.sequence = 0
+        self._rays: dict[str, _Rays] = {}
+        rows, cols = grid.shape
+        self._region_flat = self.region.ravel()
+        self._scale = np.float32(1.0 / grid.step)
+        self._origin = np.asarray(grid.origin, dtype=np.float32)
+        self._limits = (rows, cols)
+
+    # ------------------------------------------------------------ frames -> cell heights
+
+    def _rays_of(self, frame: DepthFrame) -> _Rays:
+        rays = self._rays.get(frame.serial)
+        key = (frame.depth.shape, frame.fx, frame.fy, frame.ppx, frame.ppy,
+               np.asarray(frame.extrinsic).tobytes())
+        if rays is None or rays.key != key:
+            rays = self._rays[frame.serial] = _Rays(frame, self.settings.decimation)
+        return rays
+
+    def frame_heights(self, frames: list[DepthFrame]) -> tuple[np.ndarray, np.ndarray]:
+        """Mean height of the frames' points per cell (NaN: none) and the point counts."""
+        rows, cols = self._limits
+        n_cells = rows * cols
+        count = np.zeros(n_cells)
+        total = np.zeros(n_cells)
+        d = self.settings.decimation
+        for frame in frames:
+            rays = self._rays_of(frame)
+            depth = frame.depth[::d, ::d].ravel()
+            valid = np.flatnonzero(depth)
+            z_cam = depth[valid].astype(np.float32) * np.float32(frame.depth_unit_m)
+            ox, oy, oz = rays.origin
+            col = ((ox + z_cam * rays.x[valid] - self._origin[0]) * self._scale).astype(np.int64)
+            row = ((oy + z_cam * rays.y[valid] - self._origin[1]) * self._scale).astype(np.int64)
+            z = oz + z_cam * rays.z[valid]
+            keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (z <= self.ceiling_z)
+            cell = (row * cols + col)[keep]
+            count += np.bincount(cell, None, n_cells)
+            total += np.bincount(cell, z[keep], n_cells)
+        count[~self._region_flat] = 0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(count >= MIN_POINTS, total / count, np.nan)
+        return mean.reshape(rows, cols), count.reshape(rows, cols)
+
+    # ------------------------------------------------------------ robot
+
+    def find_robots(self, surface: np.ndarray, measured: np.ndarray,
+                    ) -> tuple[np.ndarray, list[RobotSighting]]:  # fmt: skip
+        """Cells of compact, steep-sided objects standing above the local surface."""
+        settings, step = self.settings, self.grid.step
+        work = nearest_filled(surface)
+        window = max(3, int(np.ceil(ROBOT_TOPHAT_M / step)))
+        tophat = work - ndimage.grey_opening(work, size=(window, window))
+        raised = self.region & (tophat > settings.robot_min_height_m)
+        steep = measured & (tophat - ndimage.minimum_filter(tophat, size=5) > ROBOT_STEEP_M)
+        labels, n = ndimage.label(raised, structure=np.ones((3, 3)))
+        if n == 0:
+            return np.zeros(self.grid.shape, dtype=bool), []
+        index = np.arange(1, n + 1)
+        area = ndimage.sum_labels(np.ones(labels.shape), labels, index) * step * step
+        steep_cells = ndimage.sum_labels(steep & raised, labels, index)
+        robot = ((steep_cells >= ROBOT_MIN_STEEP_CELLS) & (area >= ROBOT_AREA_M2[0])
+                 & (area <= ROBOT_AREA_M2[1]))  # fmt: skip
+        if not robot.any():
+            return np.zeros(self.grid.shape, dtype=bool), []
+        keep = np.concatenate([[False], robot])
+        cells = keep[labels]
+        ids = index[robot]
+        xs, ys = self.grid.centres()
+        cx = ndimage.mean(xs, labels, ids)
+        cy = ndimage.mean(ys, labels, ids)
+        top = ndimage.maximum(work, labels, ids)
+        count = ndimage.sum_labels(np.ones(labels.shape), labels, ids)
+        centre_x, centre_y = np.zeros(n + 1), np.zeros(n + 1)
+        centre_x[ids], centre_y[ids] = cx, cy
+        spread = np.hypot(xs - centre_x[labels], ys - centre_y[labels])
+        radius = ndimage.maximum(spread, labels, ids) + step / 2
+        sightings = [RobotSighting(float(a), float(b), float(c), float(r), int(k))
+                     for a, b, c, r, k in zip(cx, cy, top, radius, count, strict=True)]
+        return cells, sightings
+
+    # ------------------------------------------------------------ update
+
+    def update(self, frames: list[DepthFrame]) -> LiveUpdate:
+        """Fold the newest frames into the cells and make the next map."""
+        s = self.settings
+        frame, _count = self.frame_heights(frames)
+        measured = np.isfinite(frame)
+        surface = np.where(measured, frame, self.height)
+        robot_cells, robots = self.find_robots(surface, measured)
+        margin = int(np.ceil(s.robot_margin_m / self.grid.step))
+        held = robot_cells
+        if margin and robot_cells.any():
+            held = ndimage.binary_dilation(robot_cells, iterations=margin)
+        xs, ys = self.grid.centres()
+        for robot in robots:  # a few robots, each a vectorised disc
+            held = held | (np.hypot(xs - robot.x, ys - robot.y)
+                           <= max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m)
+        # a cell the robot covered stays held while the frame still reads well above its last
+        # good value: the robot has not left it, whether or not this frame's detection says so
+        held |= self.held & measured & (frame - self.height > s.reset_m)
+        held &= self.region
+        update = measured & ~held
+        delta = frame - self.height
+        side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
+        confirmed = (side != 0) & (side == self.jumped)
+        self.jumped = np.where(update, side, self.jumped)
+        replace = update & (~np.isfinite(self.height) | ~self.seen | confirmed)
+        blend = update & ~replace & (side == 0)
+        self.height[replace] = frame[replace]
+        self.height[blend] += s.smoothing * delta[blend]
+        self.seen |= update
+
+        heights = np.where(self.region, nearest_filled(self.height), np.nan)
+        changed = self.region & np.isfinite(heights) & ~(
+            np.abs(heights - self.reported) <= s.change_m)
+        changed |= held != self.held
+        self.reported = np.where(changed, heights, self.reported)
+        self.held = held
+        self.sequence += 1
+        hm = HeightMap(self.grid.origin, self.grid.step, heights.astype(np.float32),
+                       self.seen & ~held, self.grid.inside)
+        return LiveUpdate(self.sequence, hm, changed, held, robots)
