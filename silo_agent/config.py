@@ -467,15 +467,18 @@ class LiveConfig(Strict):
     )
     duration_s: float = Field(default=600.0, gt=0, description="a session without duration_s")
     max_duration_s: float = Field(default=3600.0, gt=0, description="longest session allowed")
-    decimation: int = Field(default=2, ge=1, le=8, description="depth pixels step per axis")
+    decimation: int = Field(default=1, ge=1, le=8, description="depth pixels step per axis")
     smoothing: float = Field(
         default=0.3, gt=0, le=1, description="weight of the newest frame in a cell's running value"
     )
     reset_m: float = Field(
-        default=0.04, gt=0, description="a frame this far from a cell's value replaces it at once"
+        default=0.07, gt=0, description="a confirmed frame this far from a cell's value replaces it"
     )
     change_m: float = Field(
         default=0.02, gt=0, description="a cell this far from its last reported value is changed"
+    )
+    stale_s: float = Field(
+        default=3.0, gt=0, description="a cell not measured for this long is not `observed`"
     )
     robot_min_height_m: float = Field(
         default=0.15, gt=0, description="a robot stands at least this far above the local grain"

@@ -13,7 +13,6 @@ from datetime import UTC, datetime
 
 import structlog
 
-from silo_agent.capture import CaptureError
 from silo_agent.config import Config
 from silo_agent.live.command import LiveCommand, session_limits
 from silo_agent.live.session import FrameSource, LiveSession
@@ -83,7 +82,7 @@ class LiveControl:
             log.info("live session suspended for a full scan", session=session.session_id)
             session.suspend()
         elif not scan_due and not session.running:
-            self._resume(session)
+            session.resume()
 
     def _begin(self, command: LiveCommand, session_id: str, rate: float,
                duration: float) -> None:  # fmt: skip
@@ -98,13 +97,6 @@ class LiveControl:
         self.session = LiveSession(self.config, session_id, rate, duration, publish, ended,
                                    self._source)  # fmt: skip
         log.info("live session started", session=session_id, rate_hz=rate, duration_s=duration)
-
-    def _resume(self, session: LiveSession) -> None:
-        try:
-            session.resume()
-        except CaptureError as exc:
-            session.stop(f"cannot capture: {exc}")
-            self.session = None
 
     def close(self) -> None:
         """Agent shutdown: end the session, its final reply says so."""

@@ -7,10 +7,11 @@ pass over the newest frame of each camera:
 - every valid depth pixel goes to its cell through a ray table precomputed per camera (silo
   frame, z = 1 scale), so a point costs three multiply-adds; the frame's cell height is the
   mean of its points;
-- each cell keeps a running value: an exponential average of its frame heights (noise down by
-  sqrt(smoothing / (2 - smoothing))), replaced by the frame height when two frames in a row
-  are more than `reset_m` away on the same side (the rake just cut it: a moving scene cannot
-  wait for an average to catch up; one noisy frame does not count);
+- each cell keeps a running value: the mean of its first frame heights, then an exponential
+  average of them (noise down by sqrt(smoothing / (2 - smoothing))), replaced by the frame
+  height when it is more than `reset_m` away and confirmed, by most of its neighbours
+  jumping the same way or by the previous frame (the rake just cut it: a moving scene cannot
+  wait for an average to catch up; one noisy cell in one frame does not count);
 - the robot is found from depth alone, as a compact object with steep sides standing at least
   `robot_min_height_m` above the local surface (a morphological top-hat wider than the robot,
   grain never rising more steeply than its angle of repose); its cells and the disc of
@@ -37,6 +38,9 @@ ROBOT_MIN_STEEP_CELLS = 20  # of a robot's ~100 edge cells at a 2 cm grid
 ROBOT_AREA_M2 = (0.04, 1.0)  # a robot's top, its noisy edge, a heap's tip it stands on
 ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the opening removes it
 MIN_POINTS = 1  # a frame's cell height needs this many points
+SPARSE_NEIGHBOURS = 4  # a one-point cell needs this many measured neighbours (of 8)
+JUMP_MIN_VOTES = 3  # cells of a 3 x 3 block, and two thirds of those measured, jumping the
+# same way: a real change, not noise
 
 
 @dataclass(frozen=True)
@@ -70,7 +74,7 @@ class RobotSighting:
 
 @dataclass(frozen=True)
 class LiveUpdate:
-    """One live map: the height map (observed = measured this session and not held), the
+    """One live map: the height map (observed = measured within `stale_s` and not held), the
     cells changed since the previous map, the held (robot) cells, the robots, a sequence."""
 
     sequence: int
@@ -125,6 +129,8 @@ class LiveMap:
         self.reported = np.full(grid.shape, np.nan)
         self.held = np.zeros(grid.shape, dtype=bool)
         self.jumped = np.zeros(grid.shape, dtype=np.int8)  # last frame's side beyond reset_m
+        self.frames = np.zeros(grid.shape, dtype=np.int16)  # averaged since the last reset
+        self.measured_at = np.full(grid.shape, -np.inf)
         self.sequence = 0
         self._rays: dict[str, _Rays] = {}
         rows, cols = grid.shape
@@ -132,6 +138,7 @@ class LiveMap:
         self._scale = np.float32(1.0 / grid.step)
         self._origin = np.asarray(grid.origin, dtype=np.float32)
         self._limits = (rows, cols)
+        self._centres = grid.centres()
 
     # ------------------------------------------------------------ frames -> cell heights
 
@@ -164,9 +171,15 @@ class LiveMap:
             count += np.bincount(cell, None, n_cells)
             total += np.bincount(cell, z[keep], n_cells)
         count[~self._region_flat] = 0
+        total[~self._region_flat] = 0
+        count, total = count.reshape(rows, cols), total.reshape(rows, cols)
+        # the mean over the cell and its 8 neighbours: a few points of a far camera per cell
+        # are noisy, and a grain surface is smooth at 3 cells (a slope's mean is its centre's)
+        near_count = ndimage.uniform_filter(count, 3, mode="constant")
+        near_total = ndimage.uniform_filter(total, 3, mode="constant")
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(count >= MIN_POINTS, total / count, np.nan)
-        return mean.reshape(rows, cols), count.reshape(rows, cols)
+            mean = np.where(count >= MIN_POINTS, near_total / near_count, np.nan)
+        return mean, count
 
     # ------------------------------------------------------------ robot
 
@@ -192,33 +205,43 @@ class LiveMap:
         keep = np.concatenate([[False], robot])
         cells = keep[labels]
         ids = index[robot]
-        xs, ys = self.grid.centres()
-        cx = ndimage.mean(xs, labels, ids)
-        cy = ndimage.mean(ys, labels, ids)
+        xs, ys = self._centres
+        # the centre of its steep edge, not of all raised cells: a robot on a heap's tip
+        # raises the tip's cells with it, and they would pull the centre off the robot
+        edge = np.where(steep & raised, labels, 0)
+        cx = ndimage.mean(xs, edge, ids)
+        cy = ndimage.mean(ys, edge, ids)
         top = ndimage.maximum(work, labels, ids)
         count = ndimage.sum_labels(np.ones(labels.shape), labels, ids)
         centre_x, centre_y = np.zeros(n + 1), np.zeros(n + 1)
         centre_x[ids], centre_y[ids] = cx, cy
         spread = np.hypot(xs - centre_x[labels], ys - centre_y[labels])
-        radius = ndimage.maximum(spread, labels, ids) + step / 2
+        radius = ndimage.maximum(spread, edge, ids) + step / 2
         sightings = [RobotSighting(float(a), float(b), float(c), float(r), int(k))
                      for a, b, c, r, k in zip(cx, cy, top, radius, count, strict=True)]
         return cells, sightings
 
     # ------------------------------------------------------------ update
 
-    def update(self, frames: list[DepthFrame]) -> LiveUpdate:
-        """Fold the newest frames into the cells and make the next map."""
+    def update(self, frames: list[DepthFrame], now_s: float) -> LiveUpdate:
+        """Fold the newest frames, taken at `now_s` (any clock in seconds), into the cells and
+        make the next map."""
         s = self.settings
-        frame, _count = self.frame_heights(frames)
+        frame, count = self.frame_heights(frames)
+        # a lone sparse cell at the edge of a shadow holds points depth noise carried past the
+        # crest that casts it, and reads high: it counts only with data all around it
         measured = np.isfinite(frame)
+        around = ndimage.convolve(measured.astype(np.uint8), np.ones((3, 3), np.uint8),
+                                  mode="constant")  # fmt: skip
+        measured &= (count >= 2) | (around > SPARSE_NEIGHBOURS)
+        frame = np.where(measured, frame, np.nan)
         surface = np.where(measured, frame, self.height)
         robot_cells, robots = self.find_robots(surface, measured)
         margin = int(np.ceil(s.robot_margin_m / self.grid.step))
         held = robot_cells
         if margin and robot_cells.any():
             held = ndimage.binary_dilation(robot_cells, iterations=margin)
-        xs, ys = self.grid.centres()
+        xs, ys = self._centres
         for robot in robots:  # a few robots, each a vectorised disc
             held = held | (np.hypot(xs - robot.x, ys - robot.y)
                            <= max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m)
@@ -229,13 +252,24 @@ class LiveMap:
         update = measured & ~held
         delta = frame - self.height
         side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
-        confirmed = (side != 0) & (side == self.jumped)
+        ones = np.ones((3, 3), np.uint8)
+        voters = ndimage.convolve(update.astype(np.uint8), ones, mode="constant")
+        same = np.where(side > 0, ndimage.convolve((side > 0).astype(np.uint8), ones,
+                                                   mode="constant"),
+                        ndimage.convolve((side < 0).astype(np.uint8), ones, mode="constant"))
+        agree = (same >= JUMP_MIN_VOTES) & (3 * same >= 2 * voters)
+        confirmed = (side != 0) & ((side == self.jumped) | agree)
         self.jumped = np.where(update, side, self.jumped)
         replace = update & (~np.isfinite(self.height) | ~self.seen | confirmed)
         blend = update & ~replace & (side == 0)
         self.height[replace] = frame[replace]
-        self.height[blend] += s.smoothing * delta[blend]
+        self.frames[replace] = 1
+        # a plain mean over a cell's first frames, then the exponential average
+        self.frames[blend] = np.minimum(self.frames[blend] + 1, np.iinfo(np.int16).max)
+        weight = np.maximum(s.smoothing, 1.0 / self.frames[blend])
+        self.height[blend] += weight * delta[blend]
         self.seen |= update
+        self.measured_at[update] = now_s
 
         heights = np.where(self.region, nearest_filled(self.height), np.nan)
         changed = self.region & np.isfinite(heights) & ~(
@@ -244,6 +278,7 @@ class LiveMap:
         self.reported = np.where(changed, heights, self.reported)
         self.held = held
         self.sequence += 1
+        fresh = now_s - self.measured_at <= s.stale_s
         hm = HeightMap(self.grid.origin, self.grid.step, heights.astype(np.float32),
-                       self.seen & ~held, self.grid.inside)
+                       fresh & ~held, self.grid.inside)
         return LiveUpdate(self.sequence, hm, changed, held, robots)

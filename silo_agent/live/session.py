@@ -111,8 +111,6 @@ class LiveSession:
         return self._thread is not None and self._thread.is_alive()
 
     def start(self) -> None:
-        if self._source is None:
-            self._source = open_source(self.config)  # CaptureError: the command is refused
         self._stop.clear()
         self._thread = threading.Thread(target=self._loop, name=f"live-{self.session_id}",
                                         daemon=True)  # fmt: skip
@@ -144,17 +142,24 @@ class LiveSession:
 
     def _loop(self) -> None:
         period = 1.0 / self.rate_hz
+        try:
+            if self._source is None:  # here, not in the agent's loop: it takes seconds
+                self._source = open_source(self.config)
+        except CaptureError as exc:
+            self._end(f"cannot capture: {exc}")
+            return
         source = self._source
-        assert source is not None
+        sent = -np.inf
         while not self._stop.is_set():
             began = time.monotonic()
+            taken = datetime.now(UTC)
             if began >= self.deadline:
                 self._end("duration reached")
                 return
             try:
-                update = self.map.update(source.frames(began - self.started))
+                update = self.map.update(source.frames(began - self.started), began)
                 meta = {
-                    "time": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
+                    "time": taken.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),  # of the frames
                     "rate_hz": self.rate_hz,
                     "robots": [r.to_json() for r in update.robots],
                     "changed_cells": int(update.changed.sum()),
@@ -171,7 +176,11 @@ class LiveSession:
                 log.exception("live map failed", session=self.session_id)
                 self._end(f"internal error: {exc}")
                 return
-            self._publish(payload, period)
-            self.stats.maps += 1
             self.stats.last_map_s = time.monotonic() - began
+            # at most rate_hz, however long each map took
+            if self._stop.wait(max(0.0, sent + period - time.monotonic())):
+                return
+            self._publish(payload, period)
+            sent = time.monotonic()
+            self.stats.maps += 1
             self._stop.wait(max(0.0, began + period - time.monotonic()))

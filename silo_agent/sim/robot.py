@@ -1,11 +1,11 @@
 """A moving scene: a leveling robot drives a straight path across a walled bay and rakes it.
 
-The robot is a box (0.6 x 0.4 x 0.3 m) dragging a rake, the width of the robot, at its rear
-edge: behind the rake the grain is cut down to `rake_z` across the rake's width and slumps at
-its angle of repose beside it (min(original, rake_z + slope * distance beyond the rake's
-edge)); under and ahead of the robot it is untouched. Position, heading and the raked surface
-are closed-form functions of time, so a test knows the exact surface and the robot's footprint
-at the instant a frame is rendered, and the changed cells are exactly those the rake cut.
+The robot is a box (0.6 x 0.4 x 0.3 m) dragging a 1 m wide rake at its rear edge: behind the
+rake the grain is cut down to `rake_z` across the rake's width and slumps at its angle of
+repose beside the cut; under and ahead of the robot it is untouched. Position, heading and the
+raked surface are closed-form functions of time, so a test knows the exact surface and the
+robot's footprint at the instant a frame is rendered, and the changed cells are exactly those
+the rake cut.
 """
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ from silo_agent.sim.scenes import (
     HeightField,
     Scene,
     cone_height,
-    segment_distance,
     square,
 )
 from silo_agent.sim.simulate import SimView, plan_view, rng_for, serial_for
 
 ROBOT_SIZE_M = (0.6, 0.4, 0.3)  # length (along the path), width, height
+RAKE_WIDTH_M = 1.0  # the rake it drags reaches out beside it
 LEVEL_M = 0.8  # flat grain in the bay
 MOUNDS = (((-1.0, -0.55), 0.9), ((0.9, 0.6), 0.8))  # centre, radius: spout heaps to level
 PATH = ((-2.4, -1.5), (2.4, 1.5))  # the robot drives a -> b
@@ -108,17 +108,26 @@ class RakingRobot:
         return tuple(np.asarray(self.path[0]) + unit * reach)  # type: ignore[return-value]
 
     def height(self, t: float) -> HeightField:
-        """The grain surface at time t: the base, cut down to rake_z along the swept swath."""
-        start, rake = self.path[0], self.rake(t)
-        half = ROBOT_SIZE_M[1] / 2
-        original = self.base.height
+        """The grain surface at time t: the base, cut down to rake_z behind the rake, slumping
+        at the angle of repose beside the cut; nothing changes ahead of the rake (under the
+        robot), so the last surface seen before the robot covered a cell is still the truth."""
+        unit, _ = self._direction
+        ax, ay = self.path[0]
+        reach = float(np.hypot(*(np.asarray(self.rake(t)) - self.path[0])))
+        half = RAKE_WIDTH_M / 2
+        original, slope = self.base.height, self.base.grain.slope
+        if reach == 0.0:
+            return original
 
         def surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-            h = original(x, y)
-            beyond = np.maximum(segment_distance(x, y, start, rake) - half, 0.0)
-            return np.minimum(h, self.rake_z + self.base.grain.slope * beyond)
+            along = (x - ax) * unit[0] + (y - ay) * unit[1]
+            across = -(x - ax) * unit[1] + (y - ay) * unit[0]
+            gap = np.where(along < 0.0, np.hypot(along, across), np.abs(across))
+            beyond = np.maximum(gap - half, 0.0)
+            cut = np.minimum(original(x, y), self.rake_z + slope * beyond)
+            return np.where(along <= reach, cut, original(x, y))
 
-        return surface if rake != tuple(start) else original
+        return surface
 
     def pose(self, t: float) -> RobotPose:
         unit, _ = self._direction
