@@ -94,6 +94,26 @@ def nearest_filled(values: np.ndarray) -> np.ndarray:
     return values[tuple(nearest)]
 
 
+def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSighting]:
+    """Parts of one robot (split by a shadow or a rake's cut face) as one sighting: those whose
+    centres are closer than `within_m` join, weighted by their cells."""
+    out: list[RobotSighting] = []
+    for part in sorted(sightings, key=lambda r: -r.cells):  # a few per map
+        near = next((k for k, r in enumerate(out)
+                     if np.hypot(r.x - part.x, r.y - part.y) < within_m), None)  # fmt: skip
+        if near is None:
+            out.append(part)
+            continue
+        big = out[near]
+        n = big.cells + part.cells
+        x = (big.x * big.cells + part.x * part.cells) / n
+        y = (big.y * big.cells + part.y * part.cells) / n
+        reach = max(np.hypot(big.x - x, big.y - y) + big.radius_m,
+                    np.hypot(part.x - x, part.y - y) + part.radius_m)
+        out[near] = RobotSighting(x, y, max(big.top_z, part.top_z), float(reach), n)
+    return out
+
+
 class _Rays:
     """Silo-frame ray of every (decimated) pixel of one camera, scaled to unit depth."""
 
@@ -219,7 +239,7 @@ class LiveMap:
         radius = ndimage.maximum(spread, edge, ids) + step / 2
         sightings = [RobotSighting(float(a), float(b), float(c), float(r), int(k))
                      for a, b, c, r, k in zip(cx, cy, top, radius, count, strict=True)]
-        return cells, sightings
+        return cells, merged(sightings, 2 * self.settings.robot_radius_m)
 
     # ------------------------------------------------------------ update
 
