@@ -39,6 +39,7 @@ ROBOT_AREA_M2 = (0.04, 1.0)  # a robot's top, its noisy edge, a heap's tip it st
 ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the opening removes it
 MIN_POINTS = 1  # a frame's cell height needs this many points
 SPARSE_NEIGHBOURS = 4  # a one-point cell needs this many measured neighbours (of 8)
+REFILL_GROWTH = 0.01  # share of the grid newly measured that renews the hole-filling table
 JUMP_MIN_VOTES = 3  # cells of a 3 x 3 block, and two thirds of those measured, jumping the
 # same way: a real change, not noise
 
@@ -84,14 +85,21 @@ class LiveUpdate:
     robots: list[RobotSighting]
 
 
-def nearest_filled(values: np.ndarray) -> np.ndarray:
-    """`values` with every NaN taken from its nearest finite cell: a hole's edge value, not a
-    guess across it (the `observed` layer says which cells are measured)."""
-    known = np.isfinite(values)
-    if known.all() or not known.any():
-        return values
-    nearest = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
-    return values[tuple(nearest)]
+def neighbours(mask: np.ndarray) -> np.ndarray:
+    """How many of each cell's 3 x 3 block (itself included) are set."""
+    return np.rint(ndimage.uniform_filter(mask.astype(np.float32), 3, mode="constant") * 9)
+
+
+def sum_by_label(values: np.ndarray, labels: np.ndarray, n: int, top: bool = False) -> np.ndarray:
+    """Per label 1..n the sum (or the maximum) of `values`, over the labelled cells only: far
+    fewer than the grid's, where ndimage's maximum sorts the whole grid."""
+    cells = np.flatnonzero(labels)
+    lab = labels.ravel()[cells]
+    if not top:
+        return np.bincount(lab, values.ravel()[cells], n + 1)[1:]
+    out = np.full(n + 1, -np.inf)
+    np.maximum.at(out, lab, values.ravel()[cells])
+    return out[1:]
 
 
 def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSighting]:
@@ -159,6 +167,7 @@ class LiveMap:
         self._origin = np.asarray(grid.origin, dtype=np.float32)
         self._limits = (rows, cols)
         self._centres = grid.centres()
+        self._nearest: tuple[int, tuple[np.ndarray, ...]] | None = None
 
     # ------------------------------------------------------------ frames -> cell heights
 
@@ -207,7 +216,12 @@ class LiveMap:
                     ) -> tuple[np.ndarray, list[RobotSighting]]:  # fmt: skip
         """Cells of compact, steep-sided objects standing above the local surface."""
         settings, step = self.settings, self.grid.step
-        work = nearest_filled(surface)
+        work = surface
+        holes = ~np.isfinite(surface)
+        if holes.any():  # the first map: cells no frame has measured yet take their neighbour's
+            table = ndimage.distance_transform_edt(holes, return_distances=False,
+                                                   return_indices=True)  # fmt: skip
+            work = surface[tuple(table)]
         window = max(3, int(np.ceil(ROBOT_TOPHAT_M / step)))
         tophat = work - ndimage.grey_opening(work, size=(window, window))
         raised = self.region & (tophat > settings.robot_min_height_m)
@@ -216,8 +230,9 @@ class LiveMap:
         if n == 0:
             return np.zeros(self.grid.shape, dtype=bool), []
         index = np.arange(1, n + 1)
-        area = ndimage.sum_labels(np.ones(labels.shape), labels, index) * step * step
-        steep_cells = ndimage.sum_labels(steep & raised, labels, index)
+        count = sum_by_label(np.ones(labels.shape), labels, n)
+        area = count * step * step
+        steep_cells = sum_by_label(steep & raised, labels, n)
         robot = ((steep_cells >= ROBOT_MIN_STEEP_CELLS) & (area >= ROBOT_AREA_M2[0])
                  & (area <= ROBOT_AREA_M2[1]))  # fmt: skip
         if not robot.any():
@@ -229,19 +244,33 @@ class LiveMap:
         # the centre of its steep edge, not of all raised cells: a robot on a heap's tip
         # raises the tip's cells with it, and they would pull the centre off the robot
         edge = np.where(steep & raised, labels, 0)
-        cx = ndimage.mean(xs, edge, ids)
-        cy = ndimage.mean(ys, edge, ids)
-        top = ndimage.maximum(work, labels, ids)
-        count = ndimage.sum_labels(np.ones(labels.shape), labels, ids)
-        centre_x, centre_y = np.zeros(n + 1), np.zeros(n + 1)
-        centre_x[ids], centre_y[ids] = cx, cy
+        centre_x = np.concatenate([[0.0], sum_by_label(xs, edge, n) / np.maximum(steep_cells, 1)])
+        centre_y = np.concatenate([[0.0], sum_by_label(ys, edge, n) / np.maximum(steep_cells, 1)])
+        top = sum_by_label(work, labels, n, top=True)
         spread = np.hypot(xs - centre_x[labels], ys - centre_y[labels])
-        radius = ndimage.maximum(spread, edge, ids) + step / 2
-        sightings = [RobotSighting(float(a), float(b), float(c), float(r), int(k))
-                     for a, b, c, r, k in zip(cx, cy, top, radius, count, strict=True)]
+        radius = sum_by_label(spread, edge, n, top=True) + step / 2
+        sightings = [RobotSighting(float(centre_x[i]), float(centre_y[i]), float(top[i - 1]),
+                                   float(radius[i - 1]), int(count[i - 1])) for i in ids]
         return cells, merged(sightings, 2 * self.settings.robot_radius_m)
 
     # ------------------------------------------------------------ update
+
+    def _filled(self) -> np.ndarray:
+        """The running heights with every cell never measured taken from its nearest measured
+        one (a hole's edge value, not a guess across it; `observed` says which is which).
+
+        A distance transform per map would be a fifth of a map's time; measured cells stay
+        measured, so an older nearest-cell table still points every hole at a measured cell
+        and is only renewed when REFILL_GROWTH more of the grid has been measured since."""
+        known = np.isfinite(self.height)
+        n_known = int(known.sum())
+        if n_known in (0, known.size):
+            return self.height
+        if self._nearest is None or n_known > self._nearest[0] + REFILL_GROWTH * known.size:
+            table = ndimage.distance_transform_edt(~known, return_distances=False,
+                                                   return_indices=True)  # fmt: skip
+            self._nearest = (n_known, tuple(table))
+        return np.where(known, self.height, self.height[self._nearest[1]])
 
     def update(self, frames: list[DepthFrame], now_s: float) -> LiveUpdate:
         """Fold the newest frames, taken at `now_s` (any clock in seconds), into the cells and
@@ -251,11 +280,9 @@ class LiveMap:
         # a lone sparse cell at the edge of a shadow holds points depth noise carried past the
         # crest that casts it, and reads high: it counts only with data all around it
         measured = np.isfinite(frame)
-        around = ndimage.convolve(measured.astype(np.uint8), np.ones((3, 3), np.uint8),
-                                  mode="constant")  # fmt: skip
-        measured &= (count >= 2) | (around > SPARSE_NEIGHBOURS)
+        measured &= (count >= 2) | (neighbours(measured) > SPARSE_NEIGHBOURS)
         frame = np.where(measured, frame, np.nan)
-        surface = np.where(measured, frame, self.height)
+        surface = np.where(measured, frame, self._filled())
         robot_cells, robots = self.find_robots(surface, measured)
         margin = int(np.ceil(s.robot_margin_m / self.grid.step))
         held = robot_cells
@@ -272,11 +299,8 @@ class LiveMap:
         update = measured & ~held
         delta = frame - self.height
         side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
-        ones = np.ones((3, 3), np.uint8)
-        voters = ndimage.convolve(update.astype(np.uint8), ones, mode="constant")
-        same = np.where(side > 0, ndimage.convolve((side > 0).astype(np.uint8), ones,
-                                                   mode="constant"),
-                        ndimage.convolve((side < 0).astype(np.uint8), ones, mode="constant"))
+        voters = neighbours(update)
+        same = np.where(side > 0, neighbours(side > 0), neighbours(side < 0))
         agree = (same >= JUMP_MIN_VOTES) & (3 * same >= 2 * voters)
         confirmed = (side != 0) & ((side == self.jumped) | agree)
         self.jumped = np.where(update, side, self.jumped)
@@ -291,7 +315,7 @@ class LiveMap:
         self.seen |= update
         self.measured_at[update] = now_s
 
-        heights = np.where(self.region, nearest_filled(self.height), np.nan)
+        heights = np.where(self.region, self._filled(), np.nan)
         changed = self.region & np.isfinite(heights) & ~(
             np.abs(heights - self.reported) <= s.change_m)
         changed |= held != self.held

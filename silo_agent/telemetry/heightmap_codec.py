@@ -79,8 +79,10 @@ class HeightMapFormatError(ValueError):
 
 
 def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
-                     flags: int = 0) -> bytes:
-    """Encode a height map; raises ValueError if its heights span more than 65.534 m."""
+                     flags: int = 0, level: int = 9) -> bytes:
+    """Encode a height map; raises ValueError if its heights span more than 65.534 m.
+    `level` is zlib's: 9 for a retained map sent once, lower for live maps sent twice a
+    second."""
     heights = np.asarray(hm.heights, dtype=np.float64)
     rows, cols = heights.shape
     known = np.isfinite(heights)
@@ -95,12 +97,12 @@ def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
     codes[known] = np.rint((heights[known] - z_offset) * 1000.0).astype(np.uint16)
     filtered = codes.copy()
     filtered[:, 1:] = codes[:, 1:] - codes[:, :-1]  # uint16 arithmetic wraps: modulo 2**16
-    heights_blob = zlib.compress(filtered.astype("<u2").tobytes(), 9)
+    heights_blob = zlib.compress(filtered.astype("<u2").tobytes(), level)
     observed_blob = zlib.compress(
-        np.packbits(np.asarray(hm.observed, dtype=bool).ravel(), bitorder="big").tobytes(), 9
+        np.packbits(np.asarray(hm.observed, dtype=bool).ravel(), bitorder="big").tobytes(), level
     )
     inside = np.clip(np.rint(np.asarray(hm.inside, dtype=np.float64) * 255.0), 0, 255)
-    inside_blob = zlib.compress(inside.astype(np.uint8).tobytes(), 9)
+    inside_blob = zlib.compress(inside.astype(np.uint8).tobytes(), level)
     frame = frame_id.encode()
     scan = scan_id.encode()
     header = HEADER.pack(
@@ -125,15 +127,18 @@ def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
     return b"".join([header, frame, scan, heights_blob, observed_blob, inside_blob])
 
 
+LIVE_LEVEL = 1  # zlib level of live maps: 2 a second, on one core, made and sent
+
+
 def _packed(mask: np.ndarray) -> bytes:
     return zlib.compress(np.packbits(np.asarray(mask, dtype=bool).ravel(), bitorder="big")
-                         .tobytes(), 9)  # fmt: skip
+                         .tobytes(), LIVE_LEVEL)  # fmt: skip
 
 
 def encode_live_heightmap(hm: HeightMap, session_id: str, sequence: int, meta: dict,
                           layers: dict[str, np.ndarray]) -> bytes:
     """A live map: the SLHM height map with FLAG_LIVE, then sequence, metadata and bit layers."""
-    parts = [encode_heightmap(hm, session_id, flags=FLAG_LIVE)]
+    parts = [encode_heightmap(hm, session_id, flags=FLAG_LIVE, level=LIVE_LEVEL)]
     text = json.dumps(meta, separators=(",", ":")).encode()
     parts.append(LIVE_HEADER.pack(sequence % 2**32, len(text)) + text + bytes([len(layers)]))
     for name, mask in layers.items():
