@@ -84,7 +84,7 @@ def main() -> None:
         "the frames in memory to the encoded `P/heightmap/live` payload. The first map "
         f"(ray tables built, every cell new) apart. Target <= {TARGET_S} s per map.", "",
         "| decimation | points per map | median s | p90 s | max s | first s | encode s "
-        "| rate Hz | payload kB |",
+        "| maps/s at the median | payload kB |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for decimation in (1, 2):
