@@ -20,7 +20,11 @@ from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from silo_agent.telemetry.heightmap_codec import decode_heightmap, decode_live_heightmap
+from silo_agent.telemetry.heightmap_codec import (
+    HeightMapFormatError,
+    decode_heightmap,
+    decode_live_heightmap,
+)
 
 REPLIES = "test/live-replies"
 LIVE = f"{BASE}/heightmap/live"
@@ -191,8 +195,15 @@ def test_a_full_scan_pre_empts_live_and_live_resumes(tmp_path: Path, broker, lis
         # the same session carries on; a map made as the scan took over is dropped, a gap
         assert sequences[0] == 1 and all(b > a for a, b in itertools.pairwise(sequences))
         assert sequences[-1] - len(maps) <= 1
-        # the retained full-scan map is the scan's, a plain SLHM map
-        full = listener.on(f"{BASE}/heightmap")
-        assert full and full[0].retain and decode_heightmap(full[0].payload).step == 0.05
+        # the retained P/heightmap is the full scan's map (a late subscriber gets it), not live
+        late = Listener(broker.port, [f"{BASE}/heightmap"])
+        try:
+            late.wait(lambda: late.on(f"{BASE}/heightmap"), timeout=10)
+            (full,) = late.on(f"{BASE}/heightmap")
+            assert full.retain and decode_heightmap(full.payload).step == 0.05
+            with pytest.raises(HeightMapFormatError, match="not a live height map"):
+                decode_live_heightmap(full.payload)
+        finally:
+            late.close()
     finally:
         agent.kill()
