@@ -67,8 +67,17 @@ class SimFrameSource:
 
 
 def open_source(config: Config) -> FrameSource:
+    """The live cameras: all simulated, or all D455s and recordings. Raises CaptureError."""
     serials = config.live.cameras or [c.serial for c in config.cameras]
-    return SimFrameSource(config, serials)
+    sources = {c.source for c in config.cameras if c.serial in serials}
+    if sources == {"sim"}:
+        return SimFrameSource(config, serials)
+    if "sim" in sources:
+        raise CaptureError("live mode cannot mix sim cameras with D455s or recordings; "
+                           "choose them with [live] cameras")  # fmt: skip
+    from silo_agent.live.realsense import RealSenseFrameSource
+
+    return RealSenseFrameSource(config, serials)
 
 
 @dataclass
