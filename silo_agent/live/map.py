@@ -34,7 +34,7 @@ from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.grid import Grid
 
 ROBOT_STEEP_M = 0.12  # rise of the top-hat within 2 cells that no grain slope makes
-ROBOT_MIN_STEEP_CELLS = 20  # of a robot's ~100 edge cells at a 2 cm grid
+ROBOT_MIN_EDGE_M = 0.4  # steep edge a robot shows at least (a fifth of a 0.6 x 0.4 m outline)
 ROBOT_AREA_M2 = (0.04, 1.0)  # a robot's top, its noisy edge, a heap's tip it stands on
 ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the opening removes it
 MIN_POINTS = 1  # a frame's cell height needs this many points
@@ -233,7 +233,7 @@ class LiveMap:
         count = sum_by_label(np.ones(labels.shape), labels, n)
         area = count * step * step
         steep_cells = sum_by_label(steep & raised, labels, n)
-        robot = ((steep_cells >= ROBOT_MIN_STEEP_CELLS) & (area >= ROBOT_AREA_M2[0])
+        robot = ((steep_cells >= ROBOT_MIN_EDGE_M / step) & (area >= ROBOT_AREA_M2[0])
                  & (area <= ROBOT_AREA_M2[1]))  # fmt: skip
         if not robot.any():
             return np.zeros(self.grid.shape, dtype=bool), []
