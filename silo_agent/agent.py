@@ -22,6 +22,7 @@ import structlog
 
 from silo_agent.audit import AuditCache
 from silo_agent.config import Config, ConfigError, load_config
+from silo_agent.heightmap import HeightMap
 from silo_agent.live.agent import LiveControl
 from silo_agent.metrics import Metrics
 from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
@@ -78,12 +79,17 @@ class Agent:
         self._done = 0
         self._last: Outcome | None = None
         self._scheduler = None
-        self.live = LiveControl(config, self.telemetry, self._wake)
+        self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
 
     @property
     def last_outcome(self) -> Outcome | None:
         """The last scan's outcome (for `run --scans N` to print)."""
         return self._last
+
+    def _last_map(self) -> HeightMap | None:
+        """The last full scan's height map, for a live session to start from."""
+        last = self._last
+        return self.cache.heightmap(last.scan_id) if last is not None else None
 
     # ------------------------------------------------------------ triggers
 

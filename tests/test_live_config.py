@@ -1,11 +1,16 @@
-"""`[live]`: defaults in config.py, camera serials checked against `[[cameras]]`, request limits."""
+"""`[live]`: camera serials checked against `[[cameras]]`, request limits, bad requests, and
+where a session's unseen cells start from."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from silo_agent.config import ConfigError, LiveConfig, parse_config
+from silo_agent.heightmap import HeightMap
 from silo_agent.live.command import LiveRequest, parse_live_request, session_limits
+from silo_agent.live.map import DepthFrame, LiveMap
+from silo_agent.reconstruct.grid import Grid
 
 BASE = {
     "silo": {"id": "s", "region": [[0, 0], [1, 0], [1, 1]]},
@@ -43,3 +48,27 @@ def test_requests_within_the_configured_limits():
 def test_bad_requests_name_the_problem(payload: bytes, problem: str):
     with pytest.raises(ValueError, match=problem):
         parse_live_request(payload)
+
+
+def test_cells_not_seen_live_start_from_the_last_full_scan():
+    """A camera looking straight down sees the x < 0 half of a 2 x 2 m region, flat at z = 1;
+    the other half keeps the last full scan's (sloped) heights, not the nearest seen cell's."""
+    grid = Grid.over(np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]), 0.05)
+    xs, _ys = grid.centres()
+    scanned = HeightMap(grid.origin, grid.step, (0.5 + 0.1 * xs).astype(np.float32),
+                        np.ones(grid.shape, bool), grid.inside)
+    down = np.diag([1.0, -1.0, -1.0, 1.0])  # optical z down, image x along +x
+    down[:3, 3] = (-0.5, 0.0, 3.0)  # 2 m above the plane at z = 1
+    width, height, f = 100, 200, 100.0  # sees x in [-1.5, 0.5], y in [-2, 2] at 2 m: clip
+    depth = np.full((height, width), 2000, dtype=np.uint16)
+    u = np.arange(width)
+    depth[:, (u - (width - 1) / 2) / f * 2.0 - 0.5 > -0.02] = 0  # nothing at x > -0.02
+    frame = DepthFrame("cam", depth, 0.001, f, f, (width - 1) / 2, (height - 1) / 2, down)
+    for start, expected_right in ((scanned, 0.5 + 0.1 * xs), (None, np.full(grid.shape, 1.0))):
+        live = LiveMap(grid, LiveConfig(), None, start)
+        update = live.update([frame], 0.0)
+        left, right = xs < -0.1, xs > 0.1
+        np.testing.assert_allclose(update.heightmap.heights[left], 1.0, atol=1e-3)
+        np.testing.assert_allclose(update.heightmap.heights[right], expected_right[right],
+                                   atol=1e-3)  # fmt: skip
+        assert update.heightmap.observed[left].all() and not update.heightmap.observed[right].any()

@@ -9,13 +9,15 @@ and resumes the session, so no network callback ever waits for a capture.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from datetime import UTC, datetime
 
 import structlog
 
 from silo_agent.config import Config
+from silo_agent.heightmap import HeightMap
 from silo_agent.live.command import LiveCommand, session_limits
-from silo_agent.live.session import FrameSource, LiveSession
+from silo_agent.live.session import LiveSession
 from silo_agent.telemetry.mqtt import CommandRejected, Telemetry
 
 log = structlog.get_logger(__name__)
@@ -23,12 +25,13 @@ log = structlog.get_logger(__name__)
 
 class LiveControl:
     def __init__(self, config: Config, telemetry: Telemetry, wake: threading.Event,
-                 source: FrameSource | None = None) -> None:  # fmt: skip
-        """`source` replaces the cameras' frames (tests, bench)."""
+                 last_map: Callable[[], HeightMap | None] = lambda: None) -> None:  # fmt: skip
+        """`last_map` gives the last full scan's height map: cells a session has not seen yet
+        start from it."""
         self.config = config
         self.telemetry = telemetry
         self.session: LiveSession | None = None
-        self._source = source
+        self._last_map = last_map
         self._wake = wake
         self._lock = threading.Lock()
         self._start: tuple[LiveCommand, str, float, float] | None = None
@@ -95,7 +98,7 @@ class LiveControl:
             self.telemetry.publish_live(payload, max_age_s=period, qos=self.config.live.qos)
 
         self.session = LiveSession(self.config, session_id, rate, duration, publish, ended,
-                                   self._source)  # fmt: skip
+                                   start_map=self._last_map())  # fmt: skip
         log.info("live session started", session=session_id, rate_hz=rate, duration_s=duration)
 
     def close(self) -> None:

@@ -151,7 +151,8 @@ class LiveMap:
         self.ceiling_z = np.inf if ceiling_z is None else ceiling_z
         self.region = grid.inside > 0
         self.height = np.full(grid.shape, np.nan)
-        if start is not None and start.heights.shape == grid.shape:
+        if start is not None and (start.heights.shape, start.step, start.origin) == (
+                grid.shape, grid.step, grid.origin):
             self.height = np.where(self.region, start.heights, np.nan).astype(np.float64)
         self.seen = np.zeros(grid.shape, dtype=bool)
         self.reported = np.full(grid.shape, np.nan)

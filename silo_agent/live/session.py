@@ -92,8 +92,7 @@ class LiveSession:
 
     def __init__(self, config: Config, session_id: str, rate_hz: float, duration_s: float,
                  publish: Callable[[bytes, float], None], on_end: Callable[[str], None],
-                 source: FrameSource | None = None, start_map: HeightMap | None = None,
-                 ) -> None:  # fmt: skip
+                 start_map: HeightMap | None = None) -> None:  # fmt: skip
         self.config = config
         self.session_id = session_id
         self.rate_hz = rate_hz
@@ -105,7 +104,7 @@ class LiveSession:
         self.stats = LiveStats()
         self._publish = publish
         self._on_end = on_end
-        self._source = source
+        self._source: FrameSource | None = None  # open while capturing
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._ended = False
@@ -128,11 +127,15 @@ class LiveSession:
     resume = start
 
     def suspend(self) -> None:
-        """Stop capturing (a full scan needs the cameras) and wait for the thread."""
+        """Stop capturing and release the cameras (a full scan needs them); `resume` opens
+        them again."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
         self._thread = None
+        if self._source is not None:
+            self._source.close()
+            self._source = None
 
     def stop(self, reason: str) -> None:
         self.suspend()
@@ -145,6 +148,7 @@ class LiveSession:
             self._ended = True
         if self._source is not None:
             self._source.close()
+            self._source = None
         log.info("live session ended", session=self.session_id, reason=reason,
                  maps=self.stats.maps)  # fmt: skip
         self._on_end(reason)
@@ -152,8 +156,7 @@ class LiveSession:
     def _loop(self) -> None:
         period = 1.0 / self.rate_hz
         try:
-            if self._source is None:  # here, not in the agent's loop: it takes seconds
-                self._source = open_source(self.config)
+            self._source = open_source(self.config)  # here, not in the agent's loop: seconds
         except CaptureError as exc:
             self._end(f"cannot capture: {exc}")
             return
