@@ -22,6 +22,8 @@ import structlog
 
 from silo_agent.audit import AuditCache
 from silo_agent.config import Config, ConfigError, config_warnings, load_config, stale_after_s
+from silo_agent.heightmap import HeightMap
+from silo_agent.live.agent import LiveControl
 from silo_agent.metrics import Metrics
 from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
 from silo_agent.scan_service import new_scan_id
@@ -80,11 +82,17 @@ class Agent:
         self._done = 0
         self._last: Outcome | None = None
         self._scheduler = None
+        self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
 
     @property
     def last_outcome(self) -> Outcome | None:
         """The last scan's outcome (for `run --scans N` to print)."""
         return self._last
+
+    def _last_map(self) -> HeightMap | None:
+        """The last full scan's height map, for a live session to start from."""
+        last = self._last
+        return self.cache.heightmap(last.scan_id) if last is not None else None
 
     # ------------------------------------------------------------ triggers
 
@@ -249,6 +257,7 @@ class Agent:
             log.warning("config", path=str(self.config_path), warning=warning)
         with self._lock:
             self.config = new
+            self.live.config = new
             self.pipeline.config = new
             self.cache.cfg = new.audit
             self.cache.directory = Path(new.audit.directory)
@@ -279,6 +288,7 @@ class Agent:
         self.metrics.serve(config.metrics)
         self.telemetry.on_scan_request(self._requested)
         self.pipeline.clear_switched_off_alarms()  # e.g. low_volume_m3 removed while stopped
+        self.telemetry.on_live_command(self.live.requested)
         self.telemetry.start()
         self._start_scheduler()
         if config.schedule.scan_at_start:
@@ -303,6 +313,7 @@ class Agent:
                 self._do_reload()
             with self._lock:
                 ready = bool(self._pending) and self._running is None
+            self.live.tend(scan_due=ready or self._running is not None)  # a full scan wins
             if ready:
                 self._start_scan()
             timeout = LOOP_S  # sleep no later than the next watchdog ping is due
@@ -320,6 +331,7 @@ class Agent:
         self.notifier.stopping()
         log.info("agent stopping")
         self._stop_scheduler()
+        self.live.close()
         running = self._running
         if running is not None and running.thread.is_alive():
             log.info("waiting for the running scan", scan_id=running.scan_id,

@@ -43,15 +43,32 @@ reads a version-2 map:
                  above counted_offset_m of the height above the base that the published volume
                  counts; volume_m3 = step**2 * sum(counted * inside)
 
+Live maps (`P/heightmap/live`) set flag bit 2 (FLAG_LIVE) and append, after the version-2
+extension (a live map has no counted layer: C = 0):
+
+    4      sequence (uint32), +1 per live map of the agent, wrapping at 2**32
+    4      metadata length M (uint32)
+    M      metadata, UTF-8 JSON object (time, session, robots, rate)
+    1      layer count L (uint8), then per layer:
+    1        name length N (uint8)
+    N        name, UTF-8 ("changed": since the previous live map, "held": the robot's footprint
+             plus margin, whose cells keep their last good value)
+    4        blob length B (uint32)
+    B        zlib(numpy.packbits(layer, bitorder="big")), row-major, 1 = set
+
+`decode_heightmap` reads the height map of either kind; `decode_live_heightmap` the rest too.
+
 Heights and counted heights are rounded to the millimetre, so a decoded value is within
 0.5 mm of the published one; unknown cells decode to NaN.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import struct
 import zlib
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -64,6 +81,8 @@ ENCODING_UINT16_MM = 1
 FILTER_ROW_DELTA = 1
 FLAG_ROW0_MIN_Y = 1
 FLAG_ORIGIN_OUTER_CORNER = 2
+FLAG_LIVE = 4
+LIVE_HEADER = struct.Struct("<II")
 UNKNOWN = 0xFFFF
 FRAME_ID = "silo"
 HEADER = struct.Struct("<4sBBBBIIddddHHHIII")
@@ -75,7 +94,7 @@ class HeightMapFormatError(ValueError):
     """Bytes that are not a height map this decoder understands."""
 
 
-def _codes(values: np.ndarray, what: str) -> tuple[float, bytes]:
+def _codes(values: np.ndarray, what: str, level: int = 9) -> tuple[float, bytes]:
     """(offset, zlib blob) of values in millimetres above the offset, row-delta filtered."""
     values = np.asarray(values, dtype=np.float64)
     known = np.isfinite(values)
@@ -90,7 +109,7 @@ def _codes(values: np.ndarray, what: str) -> tuple[float, bytes]:
     codes[known] = np.rint((values[known] - offset) * 1000.0).astype(np.uint16)
     filtered = codes.copy()
     filtered[:, 1:] = codes[:, 1:] - codes[:, :-1]  # uint16 arithmetic wraps: modulo 2**16
-    return offset, zlib.compress(filtered.astype("<u2").tobytes(), 9)
+    return offset, zlib.compress(filtered.astype("<u2").tobytes(), level)
 
 
 def _values(blob: bytes, offset: float, unknown: int, rows: int, cols: int) -> np.ndarray:
@@ -103,25 +122,28 @@ def _or_nan(value: float | None) -> float:
     return math.nan if value is None else float(value)
 
 
-def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> bytes:
-    """Encode a height map; raises ValueError if its heights span more than 65.534 m."""
+def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
+                     flags: int = 0, level: int = 9) -> bytes:
+    """Encode a height map; raises ValueError if its heights span more than 65.534 m.
+    `level` is zlib's: 9 for a retained map sent once, lower for live maps sent twice a
+    second."""
     rows, cols = hm.shape
-    z_offset, heights_blob = _codes(hm.heights, "heights")
+    z_offset, heights_blob = _codes(hm.heights, "heights", level)
     observed_blob = zlib.compress(
-        np.packbits(np.asarray(hm.observed, dtype=bool).ravel(), bitorder="big").tobytes(), 9
+        np.packbits(np.asarray(hm.observed, dtype=bool).ravel(), bitorder="big").tobytes(), level
     )
     inside = np.clip(np.rint(np.asarray(hm.inside, dtype=np.float64) * 255.0), 0, 255)
-    inside_blob = zlib.compress(inside.astype(np.uint8).tobytes(), 9)
+    inside_blob = zlib.compress(inside.astype(np.uint8).tobytes(), level)
     counted_offset, counted_blob = 0.0, b""
     if hm.counted is not None:
-        counted_offset, counted_blob = _codes(hm.counted, "counted heights")
+        counted_offset, counted_blob = _codes(hm.counted, "counted heights", level)
     base = hm.base or (None, None, None)
     frame = frame_id.encode()
     scan = scan_id.encode()
     captured = (hm.captured_at or "").encode()
     header = HEADER.pack(
         MAGIC, VERSION, ENCODING_UINT16_MM, FILTER_ROW_DELTA,
-        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER, rows, cols, float(hm.step),
+        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER | flags, rows, cols, float(hm.step),
         float(hm.origin[0]), float(hm.origin[1]), z_offset, UNKNOWN, len(frame), len(scan),
         len(heights_blob), len(observed_blob), len(inside_blob),
     )  # fmt: skip
@@ -137,9 +159,79 @@ def _known(value: float) -> float | None:
     return None if math.isnan(value) else value
 
 
+LIVE_LEVEL = 1  # zlib level of live maps: 2 a second, on one core, made and sent
+
+
+def _packed(mask: np.ndarray) -> bytes:
+    return zlib.compress(np.packbits(np.asarray(mask, dtype=bool).ravel(), bitorder="big")
+                         .tobytes(), LIVE_LEVEL)  # fmt: skip
+
+
+def encode_live_heightmap(hm: HeightMap, session_id: str, sequence: int, meta: dict,
+                          layers: dict[str, np.ndarray]) -> bytes:
+    """A live map: the SLHM height map with FLAG_LIVE, then sequence, metadata and bit layers."""
+    parts = [encode_heightmap(hm, session_id, flags=FLAG_LIVE, level=LIVE_LEVEL)]
+    text = json.dumps(meta, separators=(",", ":")).encode()
+    parts.append(LIVE_HEADER.pack(sequence % 2**32, len(text)) + text + bytes([len(layers)]))
+    for name, mask in layers.items():
+        if np.shape(mask) != hm.shape:
+            raise ValueError(f"layer {name!r} is {np.shape(mask)}, the map {hm.shape}")
+        blob, label = _packed(mask), name.encode()
+        parts.append(bytes([len(label)]) + label + struct.pack("<I", len(blob)) + blob)
+    return b"".join(parts)
+
+
+@dataclass(frozen=True)
+class LiveHeightMap:
+    """A decoded `P/heightmap/live` message."""
+
+    heightmap: HeightMap
+    session_id: str
+    sequence: int
+    meta: dict
+    layers: dict[str, np.ndarray]
+
+
+def decode_live_heightmap(data: bytes) -> LiveHeightMap:
+    """Decode a live map; HeightMapFormatError if it is not one or is cut short."""
+    hm, session_id, _frame, end = _decode(data)
+    if not HEADER.unpack_from(data)[4] & FLAG_LIVE:
+        raise HeightMapFormatError("not a live height map (flag bit 2 clear)")
+    try:
+        sequence, meta_len = LIVE_HEADER.unpack_from(data, end)
+        pos = end + LIVE_HEADER.size
+        meta = json.loads(data[pos : pos + meta_len])
+        pos += meta_len
+        count = data[pos]
+        pos += 1
+        layers = {}
+        for _ in range(count):
+            n = data[pos]
+            name = data[pos + 1 : pos + 1 + n].decode()
+            (size,) = struct.unpack_from("<I", data, pos + 1 + n)
+            pos += 5 + n
+            bits = np.unpackbits(np.frombuffer(zlib.decompress(data[pos : pos + size]), np.uint8),
+                                 count=hm.heights.size, bitorder="big")  # fmt: skip
+            layers[name] = bits.reshape(hm.shape).astype(bool)
+            pos += size
+    except (struct.error, IndexError, ValueError, zlib.error) as exc:
+        raise HeightMapFormatError(f"corrupt live map extension: {exc}") from None
+    if pos != len(data):
+        raise HeightMapFormatError(f"length mismatch: live map ends at {pos}, got {len(data)}")
+    return LiveHeightMap(hm, session_id, sequence, meta, layers)
+
+
 def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
     """Decode version 1 or 2 to (height map, scan id, frame id); what version 1 lacks (floor,
-    base, counted heights, capture time) is None."""
+    base, counted heights, capture time) is None. A live map's extension is not read."""
+    hm, scan_id, frame, end = _decode(data)
+    if end != len(data) and not HEADER.unpack_from(data)[4] & FLAG_LIVE:
+        raise HeightMapFormatError(f"length mismatch: header says {end} bytes, got {len(data)}")
+    return hm, scan_id, frame
+
+
+def _decode(data: bytes) -> tuple[HeightMap, str, str, int]:
+    """(height map, scan id, frame id, offset where the SLHM part ends)."""
     if len(data) < HEADER.size or data[:4] != MAGIC:
         raise HeightMapFormatError("not an SLHM height map (bad magic or too short)")
     (
@@ -150,7 +242,7 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
         raise HeightMapFormatError(
             f"unsupported SLHM version {version} / encoding {encoding} / filter {filt}"
         )
-    if flags != FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER:
+    if flags & ~FLAG_LIVE != FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER:
         raise HeightMapFormatError(f"unsupported SLHM flags {flags:#x}")
     pos = HEADER.size
     frame = data[pos : pos + f_len].decode()
@@ -174,7 +266,7 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
         pos += t_len
         counted_blob = data[pos : pos + c_len]
         pos += c_len
-    if pos != len(data):
+    if pos > len(data):
         raise HeightMapFormatError(f"length mismatch: header says {pos} bytes, got {len(data)}")
     try:
         raw = [zlib.decompress(b) for b in blobs]
@@ -200,7 +292,7 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
         counted=counted,
         captured_at=captured_at,
     )
-    return hm, scan_id, frame
+    return hm, scan_id, frame, pos
 
 
 def decode_heightmap(data: bytes) -> HeightMap:

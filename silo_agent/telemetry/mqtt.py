@@ -35,6 +35,7 @@ from pydantic import ValidationError
 from silo_agent import __version__
 from silo_agent.config import Config, ConfigError, MqttConfig, stale_after_s
 from silo_agent.heightmap import HeightMap
+from silo_agent.live.command import LiveCommand, parse_live_request
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
 from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits, Row
@@ -227,6 +228,8 @@ class Telemetry:
         self._host_online = False
         self._host_ts = -1
         self._scan_callback: Callable[[ScanCommand], None] | None = None
+        self._live_callback: Callable[[LiveCommand], str] | None = None
+        self._live_map: tuple[bytes, float, int] | None = None  # payload, stale after, QoS
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.spb = cfg.sparkplug
@@ -380,6 +383,24 @@ class Telemetry:
             command.reply_topic, command.correlation, command.request_id,
             status="error" if error else "done", accepted=True, error=error, scan_id=scan_id,
         )
+
+    def on_live_command(self, callback: Callable[[LiveCommand], str]) -> None:
+        """Call `callback` (network thread, must not block) for each valid `P/cmd/live`; it
+        returns the live session's id, or raises CommandRejected."""
+        self._live_callback = callback
+
+    def finish_live(self, command: LiveCommand, session_id: str, error: str | None) -> None:
+        """The later reply: the live session ended (`error` if not as asked)."""
+        self._reply(
+            command.reply_topic, command.correlation, command.request.request_id,
+            status="error" if error else "done", accepted=True, error=error, scan_id=session_id,
+        )
+
+    def publish_live(self, payload: bytes, max_age_s: float, qos: int = 0) -> None:
+        """Send a live map on `P/heightmap/live` (not retained, not through the outbox): it
+        replaces an unsent one, and is dropped if no connection takes it within max_age_s."""
+        with self._lock:
+            self._live_map = (payload, time.monotonic() + max_age_s, qos)
 
     def status(self) -> StatusPayload:
         """What `P/status` would say now (state online), e.g. for a health check."""
@@ -627,7 +648,7 @@ class Telemetry:
         assert client is not None
         log.info("connected to the broker", link=link.name, host=self.cfg.host, port=self.cfg.port)
         if link.name == "json":
-            subs = [(self.topic("cmd/scan"), 1)]
+            subs = [(self.topic("cmd/scan"), 1), (self.topic("cmd/live"), 1)]
             ha = self.cfg.homeassistant
             if ha.enabled:
                 subs.append((homeassistant.status_topic(ha.discovery_prefix), 1))
@@ -671,6 +692,8 @@ class Telemetry:
     def _on_message(self, link: _Link, msg: mqtt.MQTTMessage) -> None:
         if msg.topic == self.topic("cmd/scan"):
             self._handle_scan_command(msg)
+        elif msg.topic == self.topic("cmd/live"):
+            self._handle_live_command(msg)
         elif self.cfg.homeassistant.enabled and msg.topic == homeassistant.status_topic(
             self.cfg.homeassistant.discovery_prefix
         ):
@@ -775,7 +798,40 @@ class Telemetry:
             log.info("scan request accepted", request_id=request_id)
             self._reply(reply_topic, correlation, request_id, status="accepted", accepted=True)
 
+    def _handle_live_command(self, msg: mqtt.MQTTMessage) -> None:
+        props = getattr(msg, "properties", None)
+        reply_topic = getattr(props, "ResponseTopic", None) or self.topic("cmd/live/reply")
+        correlation = getattr(props, "CorrelationData", None)
+        request_id = session_id = None
+        try:
+            request = parse_live_request(msg.payload)
+            request_id = request.request_id
+            if self._live_callback is None:
+                raise CommandRejected("this agent does not run live sessions")
+            session_id = self._live_callback(LiveCommand(request, reply_topic, correlation))
+        except (ValueError, CommandRejected) as exc:
+            log.warning("live request refused", request_id=request_id, error=str(exc))
+            self._reply(reply_topic, correlation, request_id, status="error", accepted=False,
+                        error=str(exc) or "rejected")  # fmt: skip
+            return
+        log.info("live request accepted", request_id=request_id, session=session_id)
+        self._reply(reply_topic, correlation, request_id, status="accepted", accepted=True,
+                    scan_id=session_id)  # fmt: skip
+
     # ------------------------------------------------------------ sending
+
+    def _send_live(self, link: _Link) -> None:
+        with self._lock:
+            live, self._live_map = self._live_map, None
+        if live is None or time.monotonic() > live[1]:
+            return
+        assert link.client is not None
+        props = None
+        if self.cfg.protocol == "5":
+            props = Properties(PacketTypes.PUBLISH)
+            props.ContentType = HEIGHTMAP_CONTENT_TYPE
+        link.client.publish(self.topic("heightmap/live"), live[0], qos=live[2], retain=False,
+                            properties=props)  # fmt: skip
 
     def _serve(self, link: _Link) -> None:
         """Per loop turn on a connected link: session messages, then outbox rows."""
@@ -795,6 +851,7 @@ class Telemetry:
                 self._publish_discovery(link)
             if alarms_dirty:
                 self._publish_alarm_states(link)
+            self._send_live(link)
         else:
             with self._lock:
                 rebirth, self._rebirth = self._rebirth, False

@@ -1,0 +1,329 @@
+"""The incremental live height map. Pure numpy: depth frames in, a map with its layers out.
+
+A full scan takes a 9-frame median per camera and clusters every cell's points; a robot moves
+between those frames, and the work is far too much for 2 maps a second. Here every map costs one
+pass over the newest frame of each camera:
+
+- every valid depth pixel goes to its cell through a ray table precomputed per camera (silo
+  frame, z = 1 scale), so a point costs three multiply-adds; the frame's cell height is the
+  mean of its points;
+- each cell keeps a running value: the mean of its first frame heights, then an exponential
+  average of them (noise down by sqrt(smoothing / (2 - smoothing))), replaced by the frame
+  height when it is more than `reset_m` away and confirmed, by most of its neighbours
+  jumping the same way or by the previous frame (the rake just cut it: a moving scene cannot
+  wait for an average to catch up; one noisy cell in one frame does not count);
+- the robot is found from depth alone, as a compact object with steep sides standing at least
+  `robot_min_height_m` above the local surface (a morphological top-hat wider than the robot,
+  grain never rising more steeply than its angle of repose); its cells and the disc of
+  `robot_radius_m` around their centre (a robot on a slope shows less than its whole top), plus
+  `robot_margin_m`, are held at their last good value and marked in the `held` layer;
+- `changed` marks the cells more than `change_m` from the value they had when last reported
+  changed, so a slow drift is reported once it adds up, not lost under the threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from silo_agent.config import LiveConfig
+from silo_agent.heightmap import HeightMap
+from silo_agent.reconstruct.grid import Grid
+
+ROBOT_STEEP_M = 0.12  # rise of the top-hat within 2 cells that no grain slope makes
+ROBOT_MIN_EDGE_M = 0.4  # steep edge a robot shows at least (a fifth of a 0.6 x 0.4 m outline)
+ROBOT_AREA_M2 = (0.04, 1.0)  # a robot's top, its noisy edge, a heap's tip it stands on
+ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the opening removes it
+MIN_POINTS = 1  # a frame's cell height needs this many points
+SPARSE_NEIGHBOURS = 4  # a one-point cell needs this many measured neighbours (of 8)
+REFILL_GROWTH = 0.01  # share of the grid newly measured that renews the hole-filling table
+JUMP_MIN_VOTES = 3  # cells of a 3 x 3 block, and two thirds of those measured, jumping the
+# same way: a real change, not noise
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """One camera's newest depth image and where the camera is."""
+
+    serial: str
+    depth: np.ndarray  # (H, W) uint16, 0 = invalid
+    depth_unit_m: float
+    fx: float
+    fy: float
+    ppx: float
+    ppy: float
+    extrinsic: np.ndarray  # 4x4 camera -> silo
+
+
+@dataclass(frozen=True)
+class RobotSighting:
+    """Where the robot is: centroid of its raised cells, its top, and their extent."""
+
+    x: float
+    y: float
+    top_z: float
+    radius_m: float  # of the disc around its cells, margin not included
+    cells: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {"x": round(self.x, 3), "y": round(self.y, 3), "top_z": round(self.top_z, 3),
+                "radius_m": round(self.radius_m, 3), "cells": self.cells}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class LiveUpdate:
+    """One live map: the height map (observed = measured within `stale_s` and not held), the
+    cells changed since the previous map, the held (robot) cells, the robots, a sequence."""
+
+    sequence: int
+    heightmap: HeightMap
+    changed: np.ndarray
+    held: np.ndarray
+    robots: list[RobotSighting]
+
+
+def neighbours(mask: np.ndarray) -> np.ndarray:
+    """How many of each cell's 3 x 3 block (itself included) are set."""
+    return np.rint(ndimage.uniform_filter(mask.astype(np.float32), 3, mode="constant") * 9)
+
+
+def sum_by_label(values: np.ndarray, labels: np.ndarray, n: int, top: bool = False) -> np.ndarray:
+    """Per label 1..n the sum (or the maximum) of `values`, over the labelled cells only: far
+    fewer than the grid's, where ndimage's maximum sorts the whole grid."""
+    cells = np.flatnonzero(labels)
+    lab = labels.ravel()[cells]
+    if not top:
+        return np.bincount(lab, values.ravel()[cells], n + 1)[1:]
+    out = np.full(n + 1, -np.inf)
+    np.maximum.at(out, lab, values.ravel()[cells])
+    return out[1:]
+
+
+def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSighting]:
+    """Parts of one robot (split by a shadow or a rake's cut face) as one sighting: those whose
+    centres are closer than `within_m` join, weighted by their cells."""
+    out: list[RobotSighting] = []
+    for part in sorted(sightings, key=lambda r: -r.cells):  # a few per map
+        near = next((k for k, r in enumerate(out)
+                     if np.hypot(r.x - part.x, r.y - part.y) < within_m), None)  # fmt: skip
+        if near is None:
+            out.append(part)
+            continue
+        big = out[near]
+        n = big.cells + part.cells
+        x = (big.x * big.cells + part.x * part.cells) / n
+        y = (big.y * big.cells + part.y * part.cells) / n
+        reach = max(np.hypot(big.x - x, big.y - y) + big.radius_m,
+                    np.hypot(part.x - x, part.y - y) + part.radius_m)
+        out[near] = RobotSighting(x, y, max(big.top_z, part.top_z), float(reach), n)
+    return out
+
+
+class _Rays:
+    """Silo-frame ray of every (decimated) pixel of one camera, scaled to unit depth."""
+
+    def __init__(self, frame: DepthFrame, decimation: int) -> None:
+        h, w = frame.depth.shape
+        v, u = np.mgrid[0:h:decimation, 0:w:decimation]
+        rotation = np.asarray(frame.extrinsic, dtype=np.float64)[:3, :3]
+        camera = np.stack([(u - frame.ppx) / frame.fx, (v - frame.ppy) / frame.fy,
+                           np.ones(u.shape)], axis=-1).reshape(-1, 3)
+        silo = camera @ rotation.T
+        self.x, self.y, self.z = (np.ascontiguousarray(silo[:, k], dtype=np.float32)
+                                  for k in range(3))
+        self.origin = np.asarray(frame.extrinsic, dtype=np.float32)[:3, 3]
+        self.key = (frame.depth.shape, frame.fx, frame.fy, frame.ppx, frame.ppy,
+                    np.asarray(frame.extrinsic).tobytes())
+
+
+class LiveMap:
+    """Per-cell state of one live session over `grid`; `update(frames)` makes the next map."""
+
+    def __init__(self, grid: Grid, settings: LiveConfig, ceiling_z: float | None = None,
+                 start: HeightMap | None = None) -> None:  # fmt: skip
+        """`start`, the last full scan's map on the same grid, gives cells not yet seen live a
+        value; without it they take their nearest seen cell's."""
+        self.grid = grid
+        self.settings = settings
+        self.ceiling_z = np.inf if ceiling_z is None else ceiling_z
+        self.region = grid.inside > 0
+        self.height = np.full(grid.shape, np.nan)
+        if start is not None and (start.heights.shape, start.step, start.origin) == (
+                grid.shape, grid.step, grid.origin):
+            self.height = np.where(self.region, start.heights, np.nan).astype(np.float64)
+        self.seen = np.zeros(grid.shape, dtype=bool)
+        self.reported = np.full(grid.shape, np.nan)
+        self.held = np.zeros(grid.shape, dtype=bool)
+        self.jumped = np.zeros(grid.shape, dtype=np.int8)  # last frame's side beyond reset_m
+        self.frames = np.zeros(grid.shape, dtype=np.int16)  # averaged since the last reset
+        self.measured_at = np.full(grid.shape, -np.inf)
+        self.sequence = 0
+        self._rays: dict[str, _Rays] = {}
+        rows, cols = grid.shape
+        self._region_flat = self.region.ravel()
+        self._scale = np.float32(1.0 / grid.step)
+        self._origin = np.asarray(grid.origin, dtype=np.float32)
+        self._limits = (rows, cols)
+        self._centres = grid.centres()
+        self._nearest: tuple[int, tuple[np.ndarray, ...]] | None = None
+
+    # ------------------------------------------------------------ frames -> cell heights
+
+    def _rays_of(self, frame: DepthFrame) -> _Rays:
+        rays = self._rays.get(frame.serial)
+        key = (frame.depth.shape, frame.fx, frame.fy, frame.ppx, frame.ppy,
+               np.asarray(frame.extrinsic).tobytes())
+        if rays is None or rays.key != key:
+            rays = self._rays[frame.serial] = _Rays(frame, self.settings.decimation)
+        return rays
+
+    def frame_heights(self, frames: list[DepthFrame]) -> tuple[np.ndarray, np.ndarray]:
+        """Mean height of the frames' points per cell (NaN: none) and the point counts."""
+        rows, cols = self._limits
+        n_cells = rows * cols
+        count = np.zeros(n_cells)
+        total = np.zeros(n_cells)
+        d = self.settings.decimation
+        for frame in frames:
+            rays = self._rays_of(frame)
+            depth = frame.depth[::d, ::d].ravel()
+            valid = np.flatnonzero(depth)
+            z_cam = depth[valid].astype(np.float32) * np.float32(frame.depth_unit_m)
+            ox, oy, oz = rays.origin
+            col = ((ox + z_cam * rays.x[valid] - self._origin[0]) * self._scale).astype(np.int64)
+            row = ((oy + z_cam * rays.y[valid] - self._origin[1]) * self._scale).astype(np.int64)
+            z = oz + z_cam * rays.z[valid]
+            keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (z <= self.ceiling_z)
+            cell = (row * cols + col)[keep]
+            count += np.bincount(cell, None, n_cells)
+            total += np.bincount(cell, z[keep], n_cells)
+        count[~self._region_flat] = 0
+        total[~self._region_flat] = 0
+        count, total = count.reshape(rows, cols), total.reshape(rows, cols)
+        # the mean over the cell and its 8 neighbours: a few points of a far camera per cell
+        # are noisy, and a grain surface is smooth at 3 cells (a slope's mean is its centre's)
+        near_count = ndimage.uniform_filter(count, 3, mode="constant")
+        near_total = ndimage.uniform_filter(total, 3, mode="constant")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(count >= MIN_POINTS, near_total / near_count, np.nan)
+        return mean, count
+
+    # ------------------------------------------------------------ robot
+
+    def find_robots(self, surface: np.ndarray, measured: np.ndarray,
+                    ) -> tuple[np.ndarray, list[RobotSighting]]:  # fmt: skip
+        """Cells of compact, steep-sided objects standing above the local surface."""
+        settings, step = self.settings, self.grid.step
+        work = surface
+        holes = ~np.isfinite(surface)
+        if holes.any():  # the first map: cells no frame has measured yet take their neighbour's
+            table = ndimage.distance_transform_edt(holes, return_distances=False,
+                                                   return_indices=True)  # fmt: skip
+            work = surface[tuple(table)]
+        window = max(3, int(np.ceil(ROBOT_TOPHAT_M / step)))
+        tophat = work - ndimage.grey_opening(work, size=(window, window))
+        raised = self.region & (tophat > settings.robot_min_height_m)
+        steep = measured & (tophat - ndimage.minimum_filter(tophat, size=5) > ROBOT_STEEP_M)
+        labels, n = ndimage.label(raised, structure=np.ones((3, 3)))
+        if n == 0:
+            return np.zeros(self.grid.shape, dtype=bool), []
+        index = np.arange(1, n + 1)
+        count = sum_by_label(np.ones(labels.shape), labels, n)
+        area = count * step * step
+        steep_cells = sum_by_label(steep & raised, labels, n)
+        robot = ((steep_cells >= ROBOT_MIN_EDGE_M / step) & (area >= ROBOT_AREA_M2[0])
+                 & (area <= ROBOT_AREA_M2[1]))  # fmt: skip
+        if not robot.any():
+            return np.zeros(self.grid.shape, dtype=bool), []
+        keep = np.concatenate([[False], robot])
+        cells = keep[labels]
+        ids = index[robot]
+        xs, ys = self._centres
+        # the centre of its steep edge, not of all raised cells: a robot on a heap's tip
+        # raises the tip's cells with it, and they would pull the centre off the robot
+        edge = np.where(steep & raised, labels, 0)
+        centre_x = np.concatenate([[0.0], sum_by_label(xs, edge, n) / np.maximum(steep_cells, 1)])
+        centre_y = np.concatenate([[0.0], sum_by_label(ys, edge, n) / np.maximum(steep_cells, 1)])
+        top = sum_by_label(work, labels, n, top=True)
+        spread = np.hypot(xs - centre_x[labels], ys - centre_y[labels])
+        radius = sum_by_label(spread, edge, n, top=True) + step / 2
+        sightings = [RobotSighting(float(centre_x[i]), float(centre_y[i]), float(top[i - 1]),
+                                   float(radius[i - 1]), int(count[i - 1])) for i in ids]
+        return cells, merged(sightings, 2 * self.settings.robot_radius_m)
+
+    # ------------------------------------------------------------ update
+
+    def _filled(self) -> np.ndarray:
+        """The running heights with every cell never measured taken from its nearest measured
+        one (a hole's edge value, not a guess across it; `observed` says which is which).
+
+        A distance transform per map would be a fifth of a map's time; measured cells stay
+        measured, so an older nearest-cell table still points every hole at a measured cell
+        and is only renewed when REFILL_GROWTH more of the grid has been measured since."""
+        known = np.isfinite(self.height)
+        n_known = int(known.sum())
+        if n_known in (0, known.size):
+            return self.height
+        if self._nearest is None or n_known > self._nearest[0] + REFILL_GROWTH * known.size:
+            table = ndimage.distance_transform_edt(~known, return_distances=False,
+                                                   return_indices=True)  # fmt: skip
+            self._nearest = (n_known, tuple(table))
+        return np.where(known, self.height, self.height[self._nearest[1]])
+
+    def update(self, frames: list[DepthFrame], now_s: float) -> LiveUpdate:
+        """Fold the newest frames, taken at `now_s` (any clock in seconds), into the cells and
+        make the next map."""
+        s = self.settings
+        frame, count = self.frame_heights(frames)
+        # a lone sparse cell at the edge of a shadow holds points depth noise carried past the
+        # crest that casts it, and reads high: it counts only with data all around it
+        measured = np.isfinite(frame)
+        measured &= (count >= 2) | (neighbours(measured) > SPARSE_NEIGHBOURS)
+        frame = np.where(measured, frame, np.nan)
+        surface = np.where(measured, frame, self._filled())
+        robot_cells, robots = self.find_robots(surface, measured)
+        margin = int(np.ceil(s.robot_margin_m / self.grid.step))
+        held = robot_cells
+        if margin and robot_cells.any():
+            held = ndimage.binary_dilation(robot_cells, iterations=margin)
+        xs, ys = self._centres
+        for robot in robots:  # a few robots, each a vectorised disc
+            held = held | (np.hypot(xs - robot.x, ys - robot.y)
+                           <= max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m)
+        # a cell the robot covered stays held while the frame still reads well above its last
+        # good value: the robot has not left it, whether or not this frame's detection says so
+        held |= self.held & measured & (frame - self.height > s.reset_m)
+        held &= self.region
+        update = measured & ~held
+        delta = frame - self.height
+        side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
+        voters = neighbours(update)
+        same = np.where(side > 0, neighbours(side > 0), neighbours(side < 0))
+        agree = (same >= JUMP_MIN_VOTES) & (3 * same >= 2 * voters)
+        confirmed = (side != 0) & ((side == self.jumped) | agree)
+        self.jumped = np.where(update, side, self.jumped)
+        replace = update & (~np.isfinite(self.height) | ~self.seen | confirmed)
+        blend = update & ~replace & (side == 0)
+        self.height[replace] = frame[replace]
+        self.frames[replace] = 1
+        # a plain mean over a cell's first frames, then the exponential average
+        self.frames[blend] = np.minimum(self.frames[blend] + 1, np.iinfo(np.int16).max)
+        weight = np.maximum(s.smoothing, 1.0 / self.frames[blend])
+        self.height[blend] += weight * delta[blend]
+        self.seen |= update
+        self.measured_at[update] = now_s
+
+        heights = np.where(self.region, self._filled(), np.nan)
+        changed = self.region & np.isfinite(heights) & ~(
+            np.abs(heights - self.reported) <= s.change_m)
+        changed |= held != self.held
+        self.reported = np.where(changed, heights, self.reported)
+        self.held = held
+        self.sequence += 1
+        fresh = now_s - self.measured_at <= s.stale_s
+        hm = HeightMap(self.grid.origin, self.grid.step, heights.astype(np.float32),
+                       fresh & ~held, self.grid.inside)
+        return LiveUpdate(self.sequence, hm, changed, held, robots)

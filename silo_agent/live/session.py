@@ -1,0 +1,198 @@
+"""A live session: capture the newest frames, update the live map, publish, at most `rate_hz`.
+
+The session runs in its own thread. The agent suspends it while a full scan has the cameras
+and resumes it afterwards; the map's state, the sequence numbers and the deadline carry over
+(the deadline is wall time: a scan in between counts against `duration_s`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Protocol
+
+import numpy as np
+import structlog
+
+from silo_agent.capture import CaptureError
+from silo_agent.config import Config
+from silo_agent.heightmap import HeightMap
+from silo_agent.live.map import DepthFrame, LiveMap
+from silo_agent.reconstruct.grid import Grid
+from silo_agent.telemetry.heightmap_codec import encode_live_heightmap
+
+log = structlog.get_logger(__name__)
+
+SIM_MESH_STEP_M = 0.03  # the moving world is rebuilt every frame: coarse enough for 2 Hz
+
+
+class FrameSource(Protocol):
+    def frames(self, elapsed_s: float) -> list[DepthFrame]:
+        """The newest depth frame of every camera. Raises CaptureError."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class SimFrameSource:
+    """`source = "sim"` cameras watching the moving-robot scene (sim/robot.py), at their
+    configured views and resolution; the scene's clock is the session's."""
+
+    def __init__(self, config: Config, serials: list[str]) -> None:
+        from silo_agent.sim.robot import RobotRig
+
+        cameras = [c for c in config.cameras if c.serial in serials]
+        missing = [c.serial for c in cameras if c.source != "sim" or c.view is None]
+        if missing:
+            raise CaptureError(
+                f"live mode runs on sim cameras with a view; not on {', '.join(missing)}")
+        self._rig = RobotRig(views=tuple(c.view for c in cameras),  # type: ignore[misc]
+                             seed=config.simulation.seed, width=cameras[0].width,
+                             height=cameras[0].height, mesh_step=SIM_MESH_STEP_M)  # fmt: skip
+        self._serials = [c.serial for c in cameras]
+        self._count = 0
+
+    def frames(self, elapsed_s: float) -> list[DepthFrame]:
+        self._count += 1
+        return [DepthFrame(serial, f.depth, f.depth_unit_m, f.intrinsics.fx, f.intrinsics.fy,
+                           f.intrinsics.ppx, f.intrinsics.ppy, view.nominal)
+                for serial, view, f in zip(self._serials, self._rig.views,
+                                           self._rig.frames(elapsed_s, self._count), strict=True)]
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def open_source(config: Config) -> FrameSource:
+    """The live cameras: all simulated, or all D455s and recordings. Raises CaptureError."""
+    serials = config.live.cameras or [c.serial for c in config.cameras]
+    sources = {c.source for c in config.cameras if c.serial in serials}
+    if sources == {"sim"}:
+        return SimFrameSource(config, serials)
+    if "sim" in sources:
+        raise CaptureError("live mode cannot mix sim cameras with D455s or recordings; "
+                           "choose them with [live] cameras")  # fmt: skip
+    from silo_agent.live.realsense import RealSenseFrameSource
+
+    return RealSenseFrameSource(config, serials)
+
+
+@dataclass
+class LiveStats:
+    maps: int = 0
+    last_map_s: float = 0.0
+
+
+class LiveSession:
+    """One `P/cmd/live` session. `start()`, `suspend()`, `resume()`, `stop()`; `on_end` is
+    called once, from the session's thread or `stop()`, with why it ended."""
+
+    def __init__(self, config: Config, session_id: str, rate_hz: float, duration_s: float,
+                 publish: Callable[[bytes, float], None], on_end: Callable[[str], None],
+                 start_map: HeightMap | None = None) -> None:  # fmt: skip
+        self.config = config
+        self.session_id = session_id
+        self.rate_hz = rate_hz
+        self.deadline = time.monotonic() + duration_s
+        self.started = time.monotonic()
+        site = config.silo
+        grid = Grid.over(np.asarray(site.region, dtype=float), config.live.grid_step_m)
+        self.map = LiveMap(grid, config.live, site.ceiling_z, start_map)
+        self.stats = LiveStats()
+        self._publish = publish
+        self._on_end = on_end
+        self._source: FrameSource | None = None  # open while capturing
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._ended = False
+        self._lock = threading.Lock()
+
+    @property
+    def active(self) -> bool:
+        return not self._ended
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._loop, name=f"live-{self.session_id}",
+                                        daemon=True)  # fmt: skip
+        self._thread.start()
+
+    resume = start
+
+    def suspend(self) -> None:
+        """Stop capturing and release the cameras (a full scan needs them); `resume` opens
+        them again."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self._thread = None
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+
+    def stop(self, reason: str) -> None:
+        self.suspend()
+        self._end(reason)
+
+    def _end(self, reason: str) -> None:
+        with self._lock:
+            if self._ended:
+                return
+            self._ended = True
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+        log.info("live session ended", session=self.session_id, reason=reason,
+                 maps=self.stats.maps)  # fmt: skip
+        self._on_end(reason)
+
+    def _loop(self) -> None:
+        period = 1.0 / self.rate_hz
+        try:
+            self._source = open_source(self.config)  # here, not in the agent's loop: seconds
+        except CaptureError as exc:
+            self._end(f"cannot capture: {exc}")
+            return
+        source = self._source
+        sent = -np.inf
+        while not self._stop.is_set():
+            began = time.monotonic()
+            taken = datetime.now(UTC)
+            if began >= self.deadline:
+                self._end("duration reached")
+                return
+            try:
+                update = self.map.update(source.frames(began - self.started), began)
+                meta = {
+                    "time": taken.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),  # of the frames
+                    "rate_hz": self.rate_hz,
+                    "robots": [r.to_json() for r in update.robots],
+                    "changed_cells": int(update.changed.sum()),
+                }
+                payload = encode_live_heightmap(
+                    update.heightmap, self.session_id, update.sequence, meta,
+                    {"changed": update.changed, "held": update.held},
+                )
+            except CaptureError as exc:
+                log.error("live capture failed", session=self.session_id, error=str(exc))
+                self._end(f"capture failed: {exc}")
+                return
+            except Exception as exc:  # a bug must not leave a dead session marked active
+                log.exception("live map failed", session=self.session_id)
+                self._end(f"internal error: {exc}")
+                return
+            self.stats.last_map_s = time.monotonic() - began
+            # at most rate_hz, however long each map took
+            if self._stop.wait(max(0.0, sent + period - time.monotonic())):
+                return
+            self._publish(payload, period)
+            sent = time.monotonic()
+            self.stats.maps += 1
+            self._stop.wait(max(0.0, began + period - time.monotonic()))

@@ -1,0 +1,111 @@
+"""The live map against the moving-robot scene's exact surface: four corner D455s (848x480)
+watch a robot rake the first of two heaps, one map every half second (the default 2 Hz)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from silo_agent.config import LiveConfig
+from silo_agent.live.map import DepthFrame, LiveMap, LiveUpdate
+from silo_agent.reconstruct.grid import Grid
+from silo_agent.sim.robot import RakingRobot, RobotPose, RobotRig
+
+TIMES = np.arange(0.0, 10.5, 0.5)  # the robot climbs the first heap from t ~ 4 s
+WARM_UP = 2  # maps before the running values have averaged the noise down
+AWAY_M = 0.5  # "away from the robot": this far outside its footprint
+
+
+@dataclass
+class Step:
+    t: float
+    update: LiveUpdate
+    truth: np.ndarray
+    pose: RobotPose
+
+
+def depth_frames(rig: RobotRig, t: float, index: int) -> list[DepthFrame]:
+    return [DepthFrame(v.serial, f.depth, f.depth_unit_m, f.intrinsics.fx, f.intrinsics.fy,
+                       f.intrinsics.ppx, f.intrinsics.ppy, v.nominal)
+            for v, f in zip(rig.views, rig.frames(t, index), strict=True)]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def run() -> tuple[RobotRig, Grid, LiveMap, list[Step]]:
+    rig = RobotRig()
+    site = rig.robot.base.site
+    grid = Grid.over(site.region, 0.02)
+    live = LiveMap(grid, LiveConfig(), site.ceiling_z)
+    xs, ys = grid.centres()
+    steps = []
+    for index, t in enumerate(TIMES):
+        update = live.update(depth_frames(rig, t, index), t)
+        steps.append(Step(t, update, rig.robot.height(t)(xs, ys), rig.robot.pose(t)))
+    return rig, grid, live, steps
+
+
+def test_the_map_follows_the_raked_surface_within_1cm_rms(run):
+    _rig, grid, _live, steps = run
+    xs, ys = grid.centres()
+    for step in steps[WARM_UP:]:
+        away = ~step.pose.footprint(xs, ys, AWAY_M)
+        cells = step.update.heightmap.observed & away
+        error = step.update.heightmap.heights[cells] - step.truth[cells]
+        assert cells.mean() > 0.6, f"t={step.t}: only {cells.mean():.0%} observed"
+        rms = float(np.sqrt(np.mean(error**2)))
+        assert rms < 0.01, f"t={step.t}: {rms * 100:.2f} cm RMS"
+
+
+def test_no_robot_shaped_bump(run):
+    """Inside the footprint no cell stands more than 2 cm above the grain under the robot."""
+    _rig, grid, _live, steps = run
+    xs, ys = grid.centres()
+    for step in steps:
+        under = step.pose.footprint(xs, ys)
+        excess = float(np.max(step.update.heightmap.heights[under] - step.truth[under]))
+        assert excess <= 0.02, f"t={step.t}: a cell {excess * 100:.1f} cm above the grain"
+        assert step.update.held[under].all(), f"t={step.t}: footprint not all held"
+
+
+def test_the_robot_is_found_where_it_is(run):
+    _rig, _grid, _live, steps = run
+    for step in steps:
+        (robot,) = step.update.robots
+        off = np.hypot(robot.x - step.pose.x, robot.y - step.pose.y)
+        assert off < 0.3, f"t={step.t}: robot reported {off:.2f} m from its centre"
+        assert robot.top_z == pytest.approx(step.pose.z + 0.3, abs=0.05)
+
+
+def test_changed_mask_covers_the_raked_cells(run):
+    rig, grid, _live, steps = run
+    xs, ys = grid.centres()
+    original = rig.robot.base.height(xs, ys)
+    changed = np.zeros(grid.shape, dtype=bool)
+    for step in steps[1:]:  # the first map is all new
+        changed |= step.update.changed
+    last = steps[-1].update
+    raked = np.abs(steps[-1].truth - original) > LiveConfig().change_m + 0.01
+    measured = raked & last.heightmap.observed  # re-measured since the rake passed
+    assert measured.sum() > 1000  # the robot has raked a good part of the first heap
+    assert changed[measured].mean() > 0.95
+    for step in steps[WARM_UP:]:  # and noise alone rarely moves a running value by change_m
+        still = np.abs(step.truth - original) < 1e-9
+        still &= ~step.pose.footprint(xs, ys, AWAY_M) & step.update.heightmap.observed
+        assert step.update.changed[still].mean() < 0.02, f"t={step.t}"
+
+
+def test_raking_robot_truth():
+    """The scene itself: nothing changes before the rake passes, behind it the heap is cut
+    to rake_z, beside it it slumps at the angle of repose."""
+    robot = RakingRobot(RobotRig().robot.base)
+    x = np.linspace(-3, 3, 301)
+    gx, gy = np.meshgrid(x, x)
+    before = robot.height(0.0)(gx, gy)
+    np.testing.assert_array_equal(before, robot.base.height(gx, gy))
+    after = robot.height(100.0)(gx, gy)
+    assert np.all(after <= before + 1e-12)
+    assert np.max(after) <= np.max(before)
+    centre = robot.pose(5.0)
+    assert robot.height(100.0)(np.array([centre.x]), np.array([centre.y]))[0] <= robot.rake_z
