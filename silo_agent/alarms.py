@@ -72,7 +72,7 @@ class AlarmState:
     active: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # type -> raised event
     baseline_scan_id: str | None = None
     last_volume_m3: float | None = None
-    drift: Mapping[str, Any] = field(default_factory=dict)  # calibrate.DriftState.to_json()
+    drift: Mapping[str, Any] = field(default_factory=dict)  # drift.DriftState.to_json()
 
     def to_json(self) -> dict[str, Any]:
         return {"active": {k: dict(v) for k, v in self.active.items()},
@@ -281,7 +281,7 @@ def evaluate(
     """Events (`raised` / `cleared`, only on a change) and the state for the next scan.
 
     With `calibration`, the `calibration` alarm follows the calibration_drift detector
-    (silo_agent.calibrate.drift_step, whose run lengths the state carries): raised while any
+    (silo_agent.drift.drift_step, whose run lengths the state carries): raised while any
     camera pair's height disagreement or camera's IMU tilt is drifted, cleared when none is.
     """
     detectors = DETECTORS if detectors is None else detectors
@@ -321,7 +321,7 @@ def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
                        previous: Mapping[str, Any], active: dict[str, Mapping[str, Any]],
                        events: list[dict[str, Any]]) -> dict[str, Any]:  # fmt: skip
     """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
-    from silo_agent.calibrate import DriftState, drift_step
+    from silo_agent.drift import DriftState, drift_step
 
     tolerances = inputs.gravity_tolerance_deg or 3.0
     state, changes = drift_step(DriftState.from_json(previous), inputs.registration_residual_m,
