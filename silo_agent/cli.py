@@ -71,8 +71,9 @@ def _settings_for(scan_settings: dict, config: Config | None, args: argparse.Nam
 
 
 def cmd_process(args: argparse.Namespace) -> int:
+    from silo_agent.analysis import analyse
     from silo_agent.config import DetectionConfig
-    from silo_agent.detect import ModelError, analyse
+    from silo_agent.detect import ModelError
     from silo_agent.scan import ScanError, read_scan
 
     config = load_config(args.config) if args.config else None
@@ -164,8 +165,9 @@ def _previous_piles(scans: Path, scan_id: str) -> list[Pile]:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    from silo_agent.analysis import analyse
     from silo_agent.capture import capture_all
-    from silo_agent.detect import ModelError, analyse
+    from silo_agent.detect import ModelError
     from silo_agent.scan import ScanError, write_scan
 
     config = load_config(args.config)
@@ -368,7 +370,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
           f"{points} points, truth {scene.volume_m3:.4f} m³")
     if args.record is not None:
-        from silo_agent.sim.record import record_views
+        from silo_agent.capture.sim_recording import record_views
 
         views = plan_views(scene, args.views, args.seed, args.calib_error, args.layout)
         for path in record_views(rig, views, args.seed, args.record, args.record_frames,

@@ -197,7 +197,7 @@ class Pipeline:
 
         previous = self._previous_piles()
         try:
-            from silo_agent.detect import analyse
+            from silo_agent.analysis import analyse
 
             result = analyse(scan, config.reconstruction, config.detection, previous=previous,
                              calibration=config.calibration)
@@ -308,8 +308,9 @@ class Pipeline:
 def replay_summary(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """(published, replayed) results of a cached scan, processed again with its own settings
     (reconstruction, detection, site, previous piles) as the agent processed it."""
+    from silo_agent.analysis import analyse
     from silo_agent.config import DetectionConfig, ReconstructionConfig
-    from silo_agent.detect import Pile, analyse
+    from silo_agent.detect import Pile
     from silo_agent.scan import read_scan
 
     scan = read_scan(directory)

@@ -11,11 +11,11 @@ import pytest
 from playback import play_stream
 
 from silo_agent.capture import capture_all
+from silo_agent.capture.sim_recording import record_views
 from silo_agent.cli import main
 from silo_agent.config import parse_config
 from silo_agent.scan import read_scan
 from silo_agent.sim import SimRig, make_scene
-from silo_agent.sim.record import record_views
 from silo_agent.sim.simulate import plan_views
 
 
