@@ -1,4 +1,4 @@
-"""The `silo-scan/1` directory (../shared/spec/scan-format.md): types, reader, writer, PLY I/O.
+"""The `silo-scan/1` directory (docs/scan-format.md): types, reader, writer, PLY I/O.
 
 A reader rejects a bad directory with a `ScanError` naming the file and the problem.
 """

@@ -67,7 +67,7 @@ def test_header_says_where_cell_0_0_is_and_the_readme_decoder_works():
     fields = HEADER.unpack_from(blob)
     assert fields[0] == b"SLHM" and fields[5:10] == (2, 3, 0.5, 10.0, 20.0)
     assert fields[4] == 0b11  # row 0 = min y, origin = outer corner
-    # the README's numpy decoder, verbatim in spirit: header, then three zlib layers
+    # the numpy decoder of docs/mqtt.md, verbatim in spirit: header, then three zlib layers
     rows, cols = struct.unpack_from("<II", blob, 8)
     z0, unknown, nf, ns, nh = struct.unpack_from("<dHHHI", blob, 40)
     pos = 66 + nf + ns
@@ -202,9 +202,9 @@ def test_drops_are_reported_on_status(tmp_path):
     tel.outbox.close()
 
 
-def test_the_readme_numpy_decoder_decodes_a_published_map():
-    readme = (SCHEMAS.parents[1] / "README.md").read_text()
-    section = readme[readme.index("### Height map"):]
+def test_the_documented_numpy_decoder_decodes_a_published_map():
+    doc = (SCHEMAS.parents[1] / "docs" / "mqtt.md").read_text()
+    section = doc[doc.index("## Height map"):]
     code = section[section.index("```python") + len("```python"):]
     code = code[:code.index("```")]
     namespace: dict = {}

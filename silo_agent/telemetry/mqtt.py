@@ -1,4 +1,4 @@
-"""MQTT telemetry: the topic contract of ../shared/spec/mqtt.md over paho-mqtt 2.x.
+"""MQTT telemetry: the topic contract of docs/mqtt.md over paho-mqtt 2.x.
 
 Producers (the scan pipeline, alarms) call `publish_*` from any thread; those calls only commit
 to the durable outbox. One network thread owns the paho clients and does everything else:

@@ -1,4 +1,4 @@
-"""JSON payloads of the MQTT contract (../shared/spec/mqtt.md), as pydantic models.
+"""JSON payloads of the MQTT contract (docs/mqtt.md), as pydantic models.
 
 The models are the single source of the JSON Schemas in `config/schemas/` (see
 `write_schemas`), so a payload that validates here validates for consumers too. Every
