@@ -17,11 +17,12 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
-from agent_support import BASE, Daemon, NotifySocket, write_config
-from mqtt_broker import free_port
-from mqtt_support import validate_json
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
+
+from tests.support.agent import BASE, Daemon, NotifySocket, write_config
+from tests.support.mqtt import validate_json
+from tests.support.mqtt_broker import free_port
 
 REPLIES = "test/replies"
 counter = itertools.count()

@@ -9,13 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_support import render
-from conftest import run_cli
 
 from silo_agent.calibrate import CalibrationError, rewrite_config_text, write_calibrated_config
 from silo_agent.config import EX_CONFIG, load_config, parse_config
 from silo_agent.geometry import transform_from_euler
 from silo_agent.scan import write_scan
+from tests.support.calib import render
+from tests.support.cli import run_cli
 
 CONFIG = """\
 # site config -- keep this comment

@@ -10,8 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_support import render_repeats, rig
-from conftest import run_cli
 from scipy.spatial import cKDTree
 
 from silo_agent.calibrate import ScanMismatch, calibrate, pool_scans
@@ -19,6 +17,8 @@ from silo_agent.config import CalibrationConfig, load_config
 from silo_agent.reconstruct import site_from_config
 from silo_agent.scan import read_scan, write_scan
 from silo_agent.sim.layouts import perturb, view_pose
+from tests.support.calib import render_repeats, rig
+from tests.support.cli import run_cli
 
 VIEWS = ["A1", "A3"]
 

@@ -6,7 +6,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from calib_support import knocked, render, rig
 
 from silo_agent.calibrate import (
     CalibrationError,
@@ -21,6 +20,7 @@ from silo_agent.reconstruct import reconstruct
 from silo_agent.sim.layouts import perturb, view_pose
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
+from tests.support.calib import knocked, render, rig
 
 VIEWS = ["A1", "A3"]
 

@@ -9,8 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_support import render, rig
-from conftest import run_cli
 
 from silo_agent.calibrate import CalibrationError, calibrate, write_calibrated_config
 from silo_agent.config import (
@@ -23,6 +21,8 @@ from silo_agent.config import (
 )
 from silo_agent.scan import write_scan
 from silo_agent.sim.layouts import view_pose
+from tests.support.calib import render, rig
+from tests.support.cli import run_cli
 
 
 def _dilated(views: list[str], outward_m: float, seed: int):

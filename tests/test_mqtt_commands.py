@@ -8,11 +8,11 @@ import json
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mqtt_support import BASE, validate_json
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from silo_agent.telemetry.payloads import MAX_COMMAND_BYTES
+from tests.support.mqtt import BASE, validate_json
 
 REPLIES = "fuzz/replies"
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import json
 
 import jinja2
-from mqtt_support import BASE, SILO, summary
 
 from silo_agent.telemetry.payloads import ALARM_TYPES
+from tests.support.mqtt import BASE, SILO, summary
 
 CONFIG = f"homeassistant/device/silo_agent_{SILO}/config"
 
