@@ -20,7 +20,8 @@ import structlog
 
 from silo_agent import __version__
 from silo_agent.alarms import DETECTORS, AlarmState, Inputs, evaluate
-from silo_agent.audit import RESULT, AuditCache, dump_json, is_disk_full, write_atomic
+from silo_agent.atomic import write_atomic
+from silo_agent.audit import RESULT, AuditCache, dump_json, is_disk_full
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
 from silo_agent.drift import gravity_angles

@@ -4,9 +4,7 @@ result is read back before anything is written, and the old file is kept as a ba
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 import tomllib
 from collections.abc import Mapping
 from datetime import UTC, datetime
@@ -17,6 +15,7 @@ import tomlkit
 from tomlkit.exceptions import TOMLKitError
 from tomlkit.items import AbstractTable, Item
 
+from silo_agent.atomic import write_atomic
 from silo_agent.calibrate.errors import CalibrationError
 from silo_agent.config import ConfigError, parse_config
 from silo_agent.geometry import euler_from_rotation
@@ -106,15 +105,5 @@ def write_calibrated_config(path: Path, poses: Mapping[str, np.ndarray]) -> Path
                 )
     backup = path.with_name(f"{path.name}.{datetime.now(UTC):%Y%m%dT%H%M%S%fZ}.bak")
     shutil.copy2(path, backup)
-    fd, staging = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as out:
-            out.write(new)
-            out.flush()
-            os.fsync(out.fileno())
-        shutil.copymode(path, staging)
-        os.replace(staging, path)
-    except BaseException:
-        Path(staging).unlink(missing_ok=True)
-        raise
+    write_atomic(path, new.encode("utf-8"), keep_mode=True)
     return backup
