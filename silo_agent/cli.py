@@ -1,8 +1,8 @@
 """`silo-agent` command line. Each subcommand lives in a small function; heavy imports stay inside
 them so that `process` pays only for what it uses.
 
-Exit status: 0 success, 1 a failed operation, 2 usage, 65 bad input data (EX_DATAERR),
-78 bad configuration (EX_CONFIG).
+Exit status (silo_agent/exitcodes.py): 0 success, 1 a failed operation, 2 usage, 65 bad input
+data (EX_DATAERR), 78 bad configuration (EX_CONFIG).
 """
 
 from __future__ import annotations
@@ -13,19 +13,36 @@ import sys
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, get_args
 
 from silo_agent import __version__
-from silo_agent.config import EX_CONFIG, Config, ConfigError, load_config
+from silo_agent.config import (
+    Config,
+    ConfigError,
+    ReconstructionConfig,
+    SimulationConfig,
+    load_config,
+)
+from silo_agent.exitcodes import EX_CONFIG, EX_DATAERR, EX_INTERRUPTED, EX_USAGE
 
 if TYPE_CHECKING:
+    from pydantic import BaseModel
+
     from silo_agent.capture import CameraFailure
     from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud, Scan
 
-EX_DATAERR = 65
-
 Handler = Callable[[argparse.Namespace], int]
+
+
+def _allowed(model: type[BaseModel], name: str) -> list[str]:
+    """The values a config field's Literal type allows: the flag offers what the file accepts."""
+    return list(get_args(model.model_fields[name].annotation))
+
+
+def _default(model: type[BaseModel], name: str) -> Any:
+    """A config field's default: the flag defaults to what the file does."""
+    return model.model_fields[name].default
 
 
 def _fail(message: str, status: int) -> int:
@@ -250,10 +267,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     if args.captures is not None and args.scan:
-        return _fail("--captures goes with --capture (give --scan once per scan instead)", 2)
+        return _fail("--captures goes with --capture (give --scan once per scan instead)", EX_USAGE)
     captures = 1 if args.captures is None else args.captures
     if captures < 1:
-        return _fail(f"--captures {captures}: must be at least 1", 2)
+        return _fail(f"--captures {captures}: must be at least 1", EX_USAGE)
     if args.scan:
         scans, names = [], []
         for directory in args.scan:
@@ -361,7 +378,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         scan = simulate(scene, args.views, args.seed, args.calib_error, args.grid_step,
                         layout=args.layout, color=args.color, rig=rig)
     except ValueError as exc:  # a layout that does not fit the scene
-        return _fail(str(exc), 2)
+        return _fail(str(exc), EX_USAGE)
     try:
         write_scan(scan, args.out)
     except ScanError as exc:
@@ -472,7 +489,7 @@ def cmd_scans(args: argparse.Namespace) -> int:
               f" in {cache.directory}")  # fmt: skip
         return 0
     if args.scan_id is None:
-        return _fail(f"scans {args.action} needs a SCAN_ID", 2)
+        return _fail(f"scans {args.action} needs a SCAN_ID", EX_USAGE)
     try:
         path = cache.find(args.scan_id)
     except ScanError as exc:
@@ -530,8 +547,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
     p.add_argument("--grid-step", type=float, metavar="METRES")
     p.add_argument(
-        "--method", choices=["bicm", "rectangle", "alpha", "poisson", "hull"],
-        help="reconstruction method (baselines for comparison); default bicm",
+        "--method", choices=_allowed(ReconstructionConfig, "method"),
+        help="reconstruction method (baselines for comparison); default "
+        + _default(ReconstructionConfig, "method"),
     )
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.set_defaults(handler=cmd_process)
@@ -579,10 +597,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--calib-error", type=_calib_error, default=(0.0, 0.0), metavar="DEG,M",
                    help="true poses off the written extrinsics by DEG degrees and M metres")
-    p.add_argument("--grid-step", type=float, default=0.02, metavar="M",
+    p.add_argument("--grid-step", type=float, metavar="M",
+                   default=_default(ReconstructionConfig, "grid_step_m"),
                    help="grid step written into the scan's reconstruction settings")
-    p.add_argument("--grain", default="wheat", choices=["wheat", "corn", "soybeans", "rice"])
-    p.add_argument("--layout", choices=["paper", "wall"],
+    p.add_argument("--grain", default=_default(SimulationConfig, "grain"),
+                   choices=_allowed(SimulationConfig, "grain"))
+    p.add_argument("--layout", choices=_allowed(SimulationConfig, "layout"),
                    help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)")
     p.add_argument("--color", action="store_true", help="colour the points (normal shading)")
     p.add_argument("--record", type=Path, metavar="DIR",
@@ -607,7 +627,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         return _fail(str(exc), EX_CONFIG)
     except KeyboardInterrupt:
-        return 130
+        return EX_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ from pydantic_core import PydanticCustomError
 
 from silo_agent.geometry import check_polygon, rigid_transform_problem, transform_from_euler
 
-EX_CONFIG = 78
 SAFE_ID = r"^[A-Za-z0-9_-]+$"
 
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from silo_agent.calibrate import CalibrationError, rewrite_config_text, write_calibrated_config
-from silo_agent.config import EX_CONFIG, load_config, parse_config
+from silo_agent.config import load_config, parse_config
+from silo_agent.exitcodes import EX_CONFIG
 from silo_agent.geometry import transform_from_euler
 from silo_agent.scan import write_scan
 from tests.support.calib import render
