@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from silo_agent.config import AlarmsConfig, CalibrationConfig
+from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
 from silo_agent.heightmap import HeightMap
 
 SIGMA_PER_MAD = 1.4826  # standard deviation of a normal distribution per median absolute dev.
@@ -38,7 +38,7 @@ class Inputs:
     volume_m3: float | None
     coverage: float
     valid: bool
-    floor_z: float = 0.0
+    floor_z: float = SiloConfig.model_fields["floor_z"].default
     ceiling_z: float | None = None
     max_z: float | None = None  # highest point of the reconstructed surface (silo frame)
     failed_cameras: tuple[tuple[str, str], ...] = ()  # (serial, error)
@@ -321,9 +321,9 @@ def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
                        previous: Mapping[str, Any], active: dict[str, Mapping[str, Any]],
                        events: list[dict[str, Any]]) -> dict[str, Any]:  # fmt: skip
     """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
-    from silo_agent.drift import DriftState, drift_step
+    from silo_agent.drift import DEFAULT_GRAVITY_TOLERANCE_DEG, DriftState, drift_step
 
-    tolerances = inputs.gravity_tolerance_deg or 3.0
+    tolerances = inputs.gravity_tolerance_deg or DEFAULT_GRAVITY_TOLERANCE_DEG
     state, changes = drift_step(DriftState.from_json(previous), inputs.registration_residual_m,
                                 inputs.gravity_deg, calibration, tolerances)
     was = "calibration" in active

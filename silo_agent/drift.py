@@ -12,10 +12,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from silo_agent.config import CalibrationConfig, Config
+from silo_agent.config import CalibrationConfig, CameraConfig, Config
 from silo_agent.geometry import gravity_angle_deg
 from silo_agent.reconstruct.residual import PairResidual
 from silo_agent.scan import CameraCloud
+
+# a camera without its own `gravity_tolerance_deg` gets the config's default
+DEFAULT_GRAVITY_TOLERANCE_DEG: float = CameraConfig.model_fields["gravity_tolerance_deg"].default
 
 
 def gravity_of(camera: CameraCloud) -> np.ndarray | None:
@@ -84,7 +87,7 @@ def drift_step(
     residuals: Mapping[str, PairResidual | float],
     gravity_deg: Mapping[str, float],
     settings: CalibrationConfig,
-    gravity_tolerance_deg: Mapping[str, float] | float = 3.0,
+    gravity_tolerance_deg: Mapping[str, float] | float = DEFAULT_GRAVITY_TOLERANCE_DEG,
 ) -> tuple[DriftState, list[DriftEvent]]:
     """One scan of the `calibration_drift` detector. Pure.
 
@@ -112,8 +115,10 @@ def drift_step(
             "cells both see",
         )
     for serial, angle in gravity_deg.items():
-        tolerance = (gravity_tolerance_deg if isinstance(gravity_tolerance_deg, (int, float))
-                     else gravity_tolerance_deg.get(serial, 3.0))  # fmt: skip
+        if isinstance(gravity_tolerance_deg, (int, float)):
+            tolerance = float(gravity_tolerance_deg)
+        else:
+            tolerance = gravity_tolerance_deg.get(serial, DEFAULT_GRAVITY_TOLERANCE_DEG)
         values[f"gravity:{serial}"] = (
             float(angle),
             float(tolerance),
@@ -154,7 +159,7 @@ class DriftMonitor:
     """A stateful wrapper of `drift_step` for the daemon: `update(result, scan)` per scan."""
 
     def __init__(self, settings: CalibrationConfig,
-                 gravity_tolerance_deg: Mapping[str, float] | float = 3.0,
+                 gravity_tolerance_deg: Mapping[str, float] | float = DEFAULT_GRAVITY_TOLERANCE_DEG,
                  state: DriftState | None = None) -> None:  # fmt: skip
         self.settings = settings
         self.gravity_tolerance_deg = gravity_tolerance_deg

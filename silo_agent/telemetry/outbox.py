@@ -19,6 +19,7 @@ from pathlib import Path
 
 import structlog
 
+from silo_agent.config import MqttConfig
 from silo_agent.telemetry.payloads import Envelope
 
 log = structlog.get_logger(__name__)
@@ -44,9 +45,11 @@ CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NU
 
 @dataclass(frozen=True)
 class OutboxLimits:
-    max_messages: int = 100_000
-    max_bytes: int = 500_000_000
-    max_age_s: float = 30 * 86400.0
+    """The outbox's bounds; the defaults are the `[mqtt]` config's."""
+
+    max_messages: int = MqttConfig.model_fields["outbox_max_messages"].default
+    max_bytes: int = MqttConfig.model_fields["outbox_max_bytes"].default
+    max_age_s: float = MqttConfig.model_fields["outbox_max_age_days"].default * 86400.0
 
 
 @dataclass(frozen=True)
