@@ -132,6 +132,7 @@ def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: P
     assert "calibration.drift_consecutive" in done.stderr
 
 
+@pytest.mark.slow
 def test_cli_calibrate_capture_with_sim_cameras(tmp_path: Path) -> None:
     config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
     config.write_text(config.read_text() + f"""

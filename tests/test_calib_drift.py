@@ -50,6 +50,7 @@ def test_fires_for_a_camera_turned_by_one_degree(axis: str) -> None:
     assert raised_at == [(2, "residual:sim-A1|sim-A3")]
 
 
+@pytest.mark.slow
 def test_quiet_on_repeated_scans_of_an_unchanged_scene() -> None:
     monitor = DriftMonitor(SETTINGS, gravity_tolerance_deg=0.5)
     for seed in range(5):

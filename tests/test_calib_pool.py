@@ -37,6 +37,7 @@ def _rays(points: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
+@pytest.mark.slow
 def test_pooled_scans_average_each_pixel(repeats) -> None:
     """A pixel seen in both scans gives the midpoint of its two points; one seen in a single
     scan (a dropout in the other) keeps its point; no pixel appears twice."""
@@ -125,6 +126,7 @@ def _config(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_cli_pools_repeated_scans_and_refuses_a_mismatch(tmp_path: Path, repeats) -> None:
     dirs = [write_scan(s, tmp_path / f"scan{k}") for k, s in enumerate(repeats)]
     config = _config(tmp_path)
@@ -152,6 +154,7 @@ def test_cli_pools_repeated_scans_and_refuses_a_mismatch(tmp_path: Path, repeats
     assert done.returncode == 2 and "--captures goes with --capture" in done.stderr
 
 
+@pytest.mark.slow
 def test_cli_takes_several_captures_in_a_row(tmp_path: Path) -> None:
     config = _config(tmp_path)
     done = run_cli("calibrate", "--config", str(config), "--capture", "--captures", "2",

@@ -118,6 +118,7 @@ def test_a_correction_beyond_the_bound_is_refused(perturbed) -> None:
         calibrate(scan, CalibrationConfig(max_correction_deg=0.1), floor=True)
 
 
+@pytest.mark.slow
 def test_per_scan_refinement_is_bounded() -> None:
     nominal = view_pose(rig().scene, "A3")
     settings = CalibrationConfig(refine=True)

@@ -149,6 +149,7 @@ def test_calibrate_write_keeps_the_spacing_entries(tmp_path: Path) -> None:
                                                                  "c").calibration.spacing
 
 
+@pytest.mark.slow
 def test_cli_reports_each_spacing_before_and_after(tmp_path: Path) -> None:
     scan, truth = _dilated(["A1", "A5"], 0.005, seed=4)
     directory = write_scan(scan, tmp_path / "scan")

@@ -83,6 +83,7 @@ def ask(col, raw: bytes) -> dict:
 
 @settings(max_examples=80, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
+@pytest.mark.slow
 @given(raw=requests)
 def test_fuzzed_requests_get_one_reply_each(agent, raw):
     tel, col, accepted = agent

@@ -253,6 +253,7 @@ def test_heightmap_is_explicit_and_observed_layer_kept(
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["rectangle", "hull", "alpha", "poisson"])
 def test_baselines_give_a_volume(cone_scan_4: Scan, cone_scene: Scene, method: str) -> None:
     result = reconstruct(cone_scan_4, ReconstructionConfig(grid_step_m=0.05, method=method))
