@@ -21,9 +21,10 @@ from zoneinfo import ZoneInfo
 import structlog
 
 from silo_agent.audit import AuditCache
-from silo_agent.config import Config, ConfigError, load_config
+from silo_agent.config import Config, ConfigError, load_config, stale_after_s
 from silo_agent.metrics import Metrics
-from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned, new_scan_id
+from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
+from silo_agent.scan_service import new_scan_id
 from silo_agent.sdnotify import Notifier
 from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand, Telemetry
 
@@ -68,6 +69,8 @@ class Agent:
         self.telemetry = Telemetry.from_config(config)
         self.cache = AuditCache(config.audit)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
+        self.telemetry.restore_alarms(self.pipeline.state.active)
+        self.metrics.set_alarms(self.pipeline.state.active)
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -248,6 +251,8 @@ class Agent:
             self.cache.cfg = new.audit
             self.cache.directory = Path(new.audit.directory)
             self.pipeline.state_path = self.cache.directory / STATE_FILE
+        self.pipeline.clear_switched_off_alarms()
+        self.telemetry.set_expire_after(stale_after_s(new.schedule, new.silo.timezone))
         self._stop_scheduler()
         self._start_scheduler()
         log.info("config reloaded", path=str(self.config_path))
@@ -269,6 +274,7 @@ class Agent:
         self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
         self.metrics.serve(config.metrics)
         self.telemetry.on_scan_request(self._requested)
+        self.pipeline.clear_switched_off_alarms()  # e.g. low_volume_m3 removed while stopped
         self.telemetry.start()
         self._start_scheduler()
         if config.schedule.scan_at_start:
@@ -304,8 +310,7 @@ class Agent:
 
     def _outbox_metrics(self) -> None:
         pending, _ = self.telemetry.outbox.size()
-        self.metrics.outbox_pending.set(pending)
-        self.metrics.outbox_dropped.set(self.telemetry.outbox.counter("dropped"))
+        self.metrics.set_outbox(pending, self.telemetry.outbox.counter("dropped"))
 
     def _shutdown(self) -> int:
         self.notifier.stopping()

@@ -22,6 +22,7 @@ from scipy import ndimage
 
 from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
 from silo_agent.heightmap import HeightMap
+from silo_agent.telemetry.payloads import ALARM_TYPES
 
 SIGMA_PER_MAD = 1.4826  # standard deviation of a normal distribution per median absolute dev.
 
@@ -262,6 +263,33 @@ DETECTORS: dict[str, Detector] = {
 
 # ---------------------------------------------------------------- lifecycle
 
+# alarm type -> the AlarmsConfig key whose absence (None) switches its detector off
+SWITCHES = {"level_high": "high_level_margin_m", "level_low": "low_volume_m3",
+            "change": "change_fraction"}  # fmt: skip
+
+
+def switched_off(cfg: AlarmsConfig) -> dict[str, str]:
+    """Alarm type -> why its detector is off under this config. Such a detector never judges
+    again, so an alarm it raised would otherwise stay raised for good."""
+    if not cfg.enabled:
+        return {kind: "alarms switched off (alarms.enabled = false)" for kind in ALARM_TYPES}
+    return {kind: f"detector switched off (alarms.{key} not set)"
+            for kind, key in SWITCHES.items() if getattr(cfg, key) is None}  # fmt: skip
+
+
+def clear_switched_off(state: AlarmState, cfg: AlarmsConfig,
+                       scan_id: str | None) -> tuple[list[dict[str, Any]], AlarmState]:
+    """`cleared` events for the active alarms whose detector the config switched off (the
+    agent calls it at start and on reload too, so a clear does not wait for the next scan)."""
+    off = switched_off(cfg)
+    events = [{"type": kind, "state": "cleared", "severity": raised.get("severity", "warning"),
+               "scan_id": scan_id, "message": off[kind]}
+              for kind, raised in state.active.items() if kind in off]  # fmt: skip
+    if not events:
+        return [], state
+    active = {k: v for k, v in state.active.items() if k not in off}
+    return events, replace(state, active=active)
+
 
 def _event(kind: str, state: str, finding: Finding, scan_id: str) -> dict[str, Any]:
     """A `silo-alarm/1` event body (telemetry adds the envelope)."""
@@ -287,7 +315,7 @@ def evaluate(
     detectors = DETECTORS if detectors is None else detectors
     if inputs.previous_volume_m3 is None:
         inputs = replace(inputs, previous_volume_m3=state.last_volume_m3)
-    events: list[dict[str, Any]] = []
+    events, state = clear_switched_off(state, cfg, inputs.scan_id)
     active = dict(state.active)
     if cfg.enabled:
         for kind, detect in detectors.items():

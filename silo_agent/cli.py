@@ -29,7 +29,6 @@ if TYPE_CHECKING:
     from pydantic import BaseModel
 
     from silo_agent.capture import CameraFailure
-    from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud, Scan
 
 Handler = Callable[[argparse.Namespace], int]
@@ -62,56 +61,21 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- process
 
 
-def _settings_for(scan_settings: dict, config: Config | None, args: argparse.Namespace):
-    """Scan's own settings, then --config, then flags (later wins)."""
-    from silo_agent.config import ReconstructionConfig
-
-    merged: dict = {}
-    known = ReconstructionConfig.model_fields
-    merged.update({k: v for k, v in scan_settings.items() if k in known})
-    if config is not None:
-        merged.update(config.reconstruction.model_dump(exclude_unset=True))
-    if args.grid_step is not None:
-        merged["grid_step_m"] = args.grid_step
-    if args.method is not None:
-        merged["method"] = args.method
-    try:
-        return ReconstructionConfig.model_validate(merged)
-    except Exception as exc:  # pydantic.ValidationError, reported like a config error
-        from pydantic import ValidationError
-
-        if isinstance(exc, ValidationError):
-            from silo_agent.config import describe_validation_error
-
-            raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
-        raise
-
-
 def cmd_process(args: argparse.Namespace) -> int:
-    from silo_agent.analysis import analyse
-    from silo_agent.config import DetectionConfig
     from silo_agent.detect import ModelError
-    from silo_agent.scan import ScanError, read_scan
+    from silo_agent.scan import ScanError
+    from silo_agent.scan_service import process_directory
 
     config = load_config(args.config) if args.config else None
     try:
-        scan = read_scan(args.scan_dir)
+        _scan, result, summary = process_directory(args.scan_dir, config, args.grid_step,
+                                                   args.method)
     except ScanError as exc:
         return _fail(str(exc), EX_DATAERR)
-    settings = _settings_for(scan.reconstruction, config, args)
-    site = scan.site
-    if config is not None:  # the config's site wins over the scan's, as for any setting
-        from silo_agent.reconstruct import site_from_config
-
-        site = site_from_config(config)
-    detection = config.detection if config is not None else DetectionConfig()
-    try:
-        calibration = config.calibration if config is not None else None
-        result = analyse(scan, settings, detection, site=site, calibration=calibration)
     except ModelError as exc:
         return _fail(str(exc), EX_CONFIG)
     if args.json:
-        print(json.dumps(result.summary(), allow_nan=False))
+        print(json.dumps(summary, allow_nan=False))
     else:
         print(result.describe())
     return 0
@@ -145,72 +109,62 @@ def _new_scan(
     config: Config, clouds: list[CameraCloud], failures: list[CameraFailure], started: datetime
 ) -> Scan:
     """A silo-scan/1 `Scan` of one capture; the scan id is the silo and the capture's UTC time."""
-    from silo_agent.reconstruct import site_from_config
-    from silo_agent.scan import Scan
+    from silo_agent.scan_service import new_scan, new_scan_id
 
-    silo = config.silo
-    return Scan(
-        scan_id=f"{silo.id}-{started:%Y%m%dT%H%M%SZ}",
-        captured_at=f"{started:%Y-%m-%dT%H:%M:%SZ}",
-        silo_id=silo.id,
-        site=site_from_config(config),
-        cameras=clouds,
-        reconstruction=config.reconstruction.model_dump(mode="json"),
-        extra={
-            "software_version": __version__,
-            "degraded": bool(failures),
-            "failures": [{"serial": f.serial, "error": f.error} for f in failures],
-        },
-    )
-
-
-def _previous_piles(scans: Path, scan_id: str) -> list[Pile]:
-    """Piles of the latest earlier scan kept in `scans` (its result.json), so pile ids carry
-    over; none when there is no readable earlier result."""
-    from silo_agent.detect import Pile
-
-    earlier = sorted(p for p in scans.glob("*/result.json") if p.parent.name < scan_id)
-    if not earlier:
-        return []
-    try:
-        piles = json.loads(earlier[-1].read_text(encoding="utf-8")).get("piles") or []
-        return [Pile.from_json(p) for p in piles]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        print(f"silo-agent: warning: {earlier[-1]}: no pile ids carried over: {exc}",
-              file=sys.stderr)  # fmt: skip
-        return []
+    return new_scan(config, new_scan_id(config, started, set()), started, clouds, failures)
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
-    from silo_agent.analysis import analyse
+    """One capture through the daemon's scan path: the scan (with its config snapshot) into
+    the cache, then processed, summarised and kept exactly as the daemon does."""
+    import time
+
+    from silo_agent.audit import AuditCache
     from silo_agent.capture import capture_all
     from silo_agent.detect import ModelError
-    from silo_agent.scan import ScanError, write_scan
+    from silo_agent.scan import ScanError
+    from silo_agent.scan_service import (
+        CONFIG_KEY,
+        analyse_scan,
+        analysis_of,
+        keep_result,
+        new_scan,
+        new_scan_id,
+        previous_piles,
+        summarise,
+    )
 
     config = load_config(args.config)
+    cache = AuditCache(config.audit.model_copy(update={"directory": args.out})
+                       if args.out else config.audit)  # fmt: skip
     started = datetime.now(UTC)
+    clock = time.perf_counter()
     capture = capture_all(config)
+    timings = {"capture_s": time.perf_counter() - clock}
     for failure in capture.failures:
         print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
     if not capture.clouds:
         return _fail("no camera delivered a cloud; no scan written", 1)
-    scan = _new_scan(config, capture.clouds, capture.failures, started)
+    scan = new_scan(config, new_scan_id(config, started, cache.names()), started,
+                    capture.clouds, capture.failures)  # fmt: skip
     try:  # audit first: the raw scan is kept even if processing fails
-        directory = write_scan(scan, (args.out or config.audit.directory) / scan.scan_id)
+        directory = cache.write_scan(scan, scan.extra[CONFIG_KEY])
     except (ScanError, OSError) as exc:
         return _fail(f"cannot write the scan: {exc}", 1)
-    previous = _previous_piles(directory.parent, scan.scan_id)
+    previous = previous_piles(cache, scan.scan_id)
+    clock = time.perf_counter()
     try:
-        result = analyse(scan, config.reconstruction, config.detection, previous=previous,
-                         calibration=config.calibration)
+        result = analyse_scan(scan, analysis_of(scan), previous)
     except ModelError as exc:
         return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
-    summary = result.summary()
-    (directory / "result.json").write_text(json.dumps(summary, allow_nan=False, indent=2) + "\n")
+    timings["reconstruct_s"] = time.perf_counter() - clock
+    summary = summarise(result, scan, timings)
+    try:
+        keep_result(directory, summary, result, previous)
+    except OSError as exc:
+        return _fail(f"cannot keep the result with the scan in {directory}: {exc}", 1)
     if args.json:
-        report = {**summary, "scan_dir": str(directory), "degraded": capture.degraded}
-        report["failures"] = scan.extra["failures"]
-        print(json.dumps(report, allow_nan=False))
+        print(json.dumps({**summary, "scan_dir": str(directory)}, allow_nan=False))
     else:
         print(result.describe())
         print(f"scan written to {directory}" + (" (degraded)" if capture.degraded else ""))
@@ -448,12 +402,12 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from silo_agent.audit import comparable, differences
-    from silo_agent.pipeline import replay_summary
     from silo_agent.scan import ScanError
+    from silo_agent.scan_service import replay
 
     try:
         directory = _scan_dir(args.scan, args.config)
-        published, again = replay_summary(directory)
+        published, again = replay(directory)
     except ScanError as exc:
         return _fail(str(exc), EX_DATAERR)
     diff = differences(comparable(published), comparable(again))

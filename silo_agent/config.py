@@ -7,6 +7,7 @@ expected (`ConfigError`, exit status 78 = EX_CONFIG).
 from __future__ import annotations
 
 import tomllib
+from itertools import pairwise
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -338,6 +339,40 @@ class ScheduleConfig(Strict):
         except ValueError as exc:
             raise ValueError(f"not a crontab expression ({exc})") from None
         return cron
+
+
+STALE_AFTER_GAPS = 2  # a reading goes stale when this many scheduled scans brought none
+CRON_LOOKAHEAD_FIRES = 2000  # a week of a cron's fire times, at most, to find its longest gap
+
+
+def scan_gap_s(schedule: ScheduleConfig, timezone: str) -> float | None:
+    """Longest time between two scheduled scans (None: scans only at start or on request)."""
+    from datetime import UTC, datetime, timedelta
+
+    gaps = [schedule.interval_s] if schedule.interval_s is not None else []
+    if schedule.cron is not None:
+        from apscheduler.triggers.cron import CronTrigger
+
+        trigger = CronTrigger.from_crontab(schedule.cron, timezone=timezone)
+        fires = []
+        fire = trigger.get_next_fire_time(None, datetime.now(UTC))
+        while fire is not None and len(fires) < CRON_LOOKAHEAD_FIRES:
+            fires.append(fire)
+            if fire - fires[0] > timedelta(days=8):
+                break
+            fire = trigger.get_next_fire_time(fire, fire)
+        if len(fires) > 1:
+            gaps.append(max((b - a).total_seconds() for a, b in pairwise(fires)))
+    return min(gaps) if gaps else None
+
+
+def stale_after_s(schedule: ScheduleConfig, timezone: str) -> int | None:
+    """Seconds after which a published reading is stale (HA's `expire_after`): one scheduled
+    scan may fail or be skipped, the next one, up to its deadline, must bring a new one."""
+    gap = scan_gap_s(schedule, timezone)
+    if gap is None:
+        return None
+    return int(np.ceil(STALE_AFTER_GAPS * gap + schedule.scan_timeout_s))
 
 
 class AlarmsConfig(Strict):

@@ -17,6 +17,11 @@ class HeightMap:
     - `heights` are silo-frame z in metres, NaN outside the region (the only unknown value).
     - `observed` marks cells that held measured points; the others were filled by B-spline.
     - `inside` is the fraction (0..1) of each cell inside the region polygon.
+    - `floor_z` is the silo-frame z of the floor (levels are heights above it).
+    - `base` is (a, b, c) of the base the volume is measured from, z = a*x + b*y + c.
+    - `counted` is, per cell, the height above the base that the published volume counts
+      (NaN without a surface): volume = step**2 * sum(counted * inside). None when the volume
+      does not come from the map (the baseline methods).
     """
 
     origin: tuple[float, float]
@@ -24,6 +29,10 @@ class HeightMap:
     heights: np.ndarray
     observed: np.ndarray
     inside: np.ndarray
+    floor_z: float | None = None
+    base: tuple[float, float, float] | None = None
+    counted: np.ndarray | None = None
+    captured_at: str | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -1,15 +1,21 @@
 """Prometheus metrics of the daemon (prometheus-client), served on `[metrics]` host:port.
 
 A private registry, so that the endpoint shows the agent's own figures and tests can build
-several agents in one process."""
+several agents in one process. Names follow Prometheus' conventions (base units spelled out,
+counters end in `_total`); every labelled series an alert may rely on (each scan outcome,
+each alarm type) exists from the start at 0, so `absent()` never hides a quiet agent."""
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 
 from silo_agent.config import MetricsConfig
+from silo_agent.telemetry.payloads import ALARM_TYPES
 
 STAGE_BUCKETS = (0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600)
+SCAN_OUTCOMES = ("ok", "invalid", "failed")
 
 
 class Metrics:
@@ -23,19 +29,45 @@ class Metrics:
         self.stage_seconds = Histogram("silo_agent_stage_duration_seconds",
                                        "Duration of each scan stage", ["stage"],
                                        buckets=STAGE_BUCKETS, registry=r)
-        self.volume = Gauge("silo_agent_last_volume_m3", "Volume of the last valid scan",
-                            registry=r)
+        self.volume = Gauge("silo_agent_last_volume_cubic_meters",
+                            "Volume of the last valid scan", registry=r)
+        self.mass = Gauge("silo_agent_last_mass_kilograms",
+                          "Mass of the last valid scan (volume x silo.bulk_density_t_m3)",
+                          registry=r)
         self.coverage = Gauge("silo_agent_last_coverage_ratio",
                               "Observed share of the region in the last scan", registry=r)
-        self.outbox_pending = Gauge("silo_agent_outbox_pending",
+        self.last_scan = Gauge("silo_agent_last_scan_timestamp_seconds",
+                               "Capture time of the last scan, whatever its outcome",
+                               registry=r)
+        self.last_valid_scan = Gauge("silo_agent_last_valid_scan_timestamp_seconds",
+                                     "Capture time of the last valid scan (the volume's)",
+                                     registry=r)
+        self.outbox_pending = Gauge("silo_agent_outbox_pending_messages",
                                     "Messages waiting for a broker acknowledgement", registry=r)
-        self.outbox_dropped = Gauge("silo_agent_outbox_dropped",
-                                    "Messages dropped by the outbox bounds, ever", registry=r)
+        self.outbox_dropped = Counter("silo_agent_outbox_dropped_messages",
+                                      "Messages dropped by the outbox bounds", registry=r)
         self.camera_up = Gauge("silo_agent_camera_up", "1 if the camera delivered its last cloud",
                                ["serial"], registry=r)
         self.alarm_active = Gauge("silo_agent_alarm_active", "1 while the alarm is raised",
                                   ["type"], registry=r)
+        for outcome in SCAN_OUTCOMES:
+            self.scans.labels(outcome)
+        self.set_alarms(())
+        self._dropped_seen = 0
         self._server = None
+
+    def set_alarms(self, active: Iterable[str]) -> None:
+        """1 for the raised alarm types, 0 for every other one."""
+        raised = set(active)
+        for kind in raised | set(ALARM_TYPES):
+            self.alarm_active.labels(kind).set(1 if kind in raised else 0)
+
+    def set_outbox(self, pending: int, dropped_ever: int) -> None:
+        """The outbox's figures; its dropped count is persisted, the counter follows it."""
+        self.outbox_pending.set(pending)
+        if dropped_ever > self._dropped_seen:
+            self.outbox_dropped.inc(dropped_ever - self._dropped_seen)
+            self._dropped_seen = dropped_ever
 
     def serve(self, cfg: MetricsConfig) -> None:
         if cfg.enabled:

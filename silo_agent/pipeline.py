@@ -18,17 +18,26 @@ from typing import Any
 
 import structlog
 
-from silo_agent import __version__
-from silo_agent.alarms import DETECTORS, AlarmState, Inputs, evaluate
+from silo_agent.alarms import AlarmState, Inputs, clear_switched_off, evaluate
 from silo_agent.atomic import write_atomic
-from silo_agent.audit import RESULT, AuditCache, dump_json, is_disk_full
+from silo_agent.audit import AuditCache, dump_json, is_disk_full
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
 from silo_agent.drift import gravity_angles
 from silo_agent.metrics import Metrics
-from silo_agent.reconstruct import Result, site_from_config
+from silo_agent.reconstruct import Result
 from silo_agent.scan import Scan, ScanError
+from silo_agent.scan_service import (
+    CONFIG_KEY,
+    analyse_scan,
+    analysis_of,
+    keep_result,
+    new_scan,
+    previous_piles,
+    summarise,
+)
 from silo_agent.telemetry.mqtt import Telemetry
+from silo_agent.telemetry.sparkplug import iso_to_ms
 
 log = structlog.get_logger(__name__)
 
@@ -47,27 +56,6 @@ class Outcome:
     summary: dict[str, Any] | None = None
     directory: Path | None = None
     events: list[dict[str, Any]] = field(default_factory=list)
-
-
-def new_scan_id(config: Config, started: datetime, taken: set[str]) -> str:
-    """`<silo>-<UTC yyyymmddThhmmssZ>`, suffixed when that second already has a scan."""
-    base = f"{config.silo.id}-{started:%Y%m%dT%H%M%SZ}"
-    scan_id, k = base, 1
-    while scan_id in taken:
-        scan_id, k = f"{base}-{k}", k + 1
-    return scan_id
-
-
-def published_summary(result: Result, scan: Scan, failures: list[CameraFailure],
-                      timings: dict[str, float]) -> dict[str, Any]:
-    """The result as published on `P/scan` and kept as `result.json`."""
-    summary = result.summary()
-    summary["captured_at"] = scan.captured_at
-    summary["degraded"] = bool(failures)
-    summary["cameras"] = {"used": [c.serial for c in scan.cameras],
-                          "failed": [{"serial": f.serial, "error": f.error} for f in failures]}
-    summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
-    return summary
 
 
 def failure_summary(scan_id: str, captured_at: str, config: Config, reason: str,
@@ -129,20 +117,6 @@ class Pipeline:
             self._baseline_map = (scan_id, self.cache.heightmap(scan_id))
         return self._baseline_map[1]
 
-    def _previous_piles(self) -> list[Any]:
-        from silo_agent.detect import Pile
-
-        for entry in reversed(self.cache.entries()):
-            try:
-                summary = json.loads((entry.path / RESULT).read_text(encoding="utf-8"))
-                return [Pile.from_json(p) for p in summary.get("piles") or []]
-            except FileNotFoundError:
-                continue
-            except (OSError, ValueError, KeyError, TypeError) as exc:
-                log.warning("no pile ids carried over", scan_id=entry.scan_id, error=str(exc))
-                return []
-        return []
-
     # ------------------------------------------------------------ one scan
 
     def run(self, scan_id: str, started: datetime, deadline: float,
@@ -184,31 +158,21 @@ class Pipeline:
             return self._failed(scan_id, captured_at, "capture: no camera delivered a cloud",
                                 capture.failures, timings, failed)
 
-        scan = Scan(
-            scan_id=scan_id, captured_at=captured_at, silo_id=config.silo.id,
-            site=site_from_config(config), cameras=capture.clouds,
-            reconstruction=config.reconstruction.model_dump(mode="json"),
-            extra={"software_version": __version__, "degraded": capture.degraded,
-                   "failures": [{"serial": f.serial, "error": f.error}
-                                for f in capture.failures]},
-        )  # fmt: skip
+        scan = new_scan(config, scan_id, started, capture.clouds, capture.failures)
         directory, cache_full = self._write(scan)
         t = lap("audit", t)
         check()
 
-        previous = self._previous_piles()
+        previous = previous_piles(self.cache, scan_id)
         try:
-            from silo_agent.analysis import analyse
-
-            result = analyse(scan, config.reconstruction, config.detection, previous=previous,
-                             calibration=config.calibration)
+            result = analyse_scan(scan, analysis_of(scan), previous)
         except Exception as exc:  # a bug or a bad model must not stop the agent
             log.exception("processing failed", scan_id=scan_id)
             return self._failed(scan_id, captured_at, f"processing: {exc}", capture.failures,
                                 timings, failed, cache_full)
         t = lap("reconstruct", t)
         check()
-        summary = published_summary(result, scan, capture.failures, timings)
+        summary = summarise(result, scan, timings)
         surface = summary.get("surface") or {}
         inputs = Inputs(
             scan_id=scan_id, heightmap=result.heightmap, volume_m3=result.volume_m3,
@@ -230,16 +194,15 @@ class Pipeline:
         self._save_state()
         self._publish(summary, result, events)
         if directory is not None:
-            inputs_json = {"previous_piles": [p.to_json() for p in previous]}
             try:
-                self.cache.add_result(directory, summary, result.heightmap, inputs_json)
+                keep_result(directory, summary, result, previous)
             except OSError as exc:
                 log.error("cannot keep the result with the scan", scan_id=scan_id,
                           error=str(exc))
         lap("publish", t)
         self.cache.enforce(self.protected())
         outcome = "ok" if result.valid else "invalid"
-        self._count(outcome, result)
+        self._count(outcome, summary)
         log.info("scan finished", scan_id=scan_id, outcome=outcome, volume_m3=result.volume_m3,
                  coverage=round(result.coverage, 4), alarms=[
                      f"{e['type']}:{e['state']}" for e in events])  # fmt: skip
@@ -248,7 +211,7 @@ class Pipeline:
     def _write(self, scan: Scan) -> tuple[Path | None, bool]:
         """The raw scan into the cache; on a full disk evict and retry once, then go on
         uncached (the `cache` alarm says so)."""
-        snapshot = self.config.model_dump(mode="json")
+        snapshot = scan.extra[CONFIG_KEY]
         for attempt in range(2):
             try:
                 return self.cache.write_scan(scan, snapshot), False
@@ -281,7 +244,7 @@ class Pipeline:
                 self.telemetry.publish_alarm(event)
         except Exception:
             log.exception("cannot queue the failure report", scan_id=scan_id)
-        self._count("failed", None)
+        self._count("failed", summary)
         log.error("scan failed", scan_id=scan_id, reason=reason)
         return Outcome(scan_id, "failed", reason, summary, None, events)
 
@@ -293,41 +256,29 @@ class Pipeline:
             log.warning("alarm", **{k: v for k, v in event.items() if k != "message"},
                         text=event["message"])
 
-    def _count(self, outcome: str, result: Result | None) -> None:
+    def _count(self, outcome: str, summary: dict[str, Any]) -> None:
         m = self.metrics
         m.scans.labels(outcome).inc()
-        if result is not None:
-            m.coverage.set(result.coverage)
-            if result.valid and result.volume_m3 is not None:
-                m.volume.set(result.volume_m3)
-        for kind in self.state.active:
-            m.alarm_active.labels(kind).set(1)
-        for kind in set(DETECTORS) - set(self.state.active):
-            m.alarm_active.labels(kind).set(0)
+        captured = iso_to_ms(summary["captured_at"]) / 1000.0
+        m.last_scan.set(captured)
+        if outcome != "failed":
+            m.coverage.set(summary["coverage"])
+        if summary["valid"] and summary.get("volume_m3") is not None:
+            m.volume.set(summary["volume_m3"])
+            m.last_valid_scan.set(captured)
+            if summary.get("mass_t") is not None:
+                m.mass.set(summary["mass_t"] * 1000.0)
+        m.set_alarms(self.state.active)
 
-
-def replay_summary(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(published, replayed) results of a cached scan, processed again with its own settings
-    (reconstruction, detection, site, previous piles) as the agent processed it."""
-    from silo_agent.analysis import analyse
-    from silo_agent.config import DetectionConfig, ReconstructionConfig
-    from silo_agent.detect import Pile
-    from silo_agent.scan import read_scan
-
-    scan = read_scan(directory)
-    try:
-        published = json.loads((directory / RESULT).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ScanError(f"{directory / RESULT}: the scan has no published result") from None
-    snapshot = scan.extra.get("config") or {}
-    settings = ReconstructionConfig.model_validate(scan.reconstruction)
-    detection = DetectionConfig.model_validate(snapshot.get("detection") or {})
-    try:
-        inputs = json.loads((directory / "inputs.json").read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        inputs = {}
-    previous = [Pile.from_json(p) for p in inputs.get("previous_piles") or []]
-    result = analyse(scan, settings, detection, previous=previous)
-    failures = [CameraFailure(f["serial"], f["error"]) for f in scan.extra.get("failures", [])]
-    again = published_summary(result, scan, failures, {})
-    return published, again
+    def clear_switched_off_alarms(self) -> None:
+        """At start and after a reload: clear, with the usual `cleared` event, every raised
+        alarm whose detector the config now switches off; it would never judge again."""
+        events, self.state = clear_switched_off(self.state, self.config.alarms, None)
+        if not events:
+            return
+        self._save_state()
+        for event in events:
+            self.telemetry.publish_alarm(event)
+            log.info("alarm cleared, its detector is switched off", type=event["type"],
+                     reason=event["message"])
+        self.metrics.set_alarms(self.state.active)

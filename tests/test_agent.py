@@ -125,8 +125,8 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
         assert f'silo_agent_scans_total{{outcome="ok"}} {scans}.0' in text
         assert f'silo_agent_stage_duration_seconds_count{{stage="capture"}} {scans}.0' in text
         assert 'silo_agent_camera_up{serial="sim-A2"} 1.0' in text
-        assert "silo_agent_last_volume_m3 4" in text  # ~43.2 m³ of flat grain
-        assert "silo_agent_outbox_pending" in text
+        assert "silo_agent_last_volume_cubic_meters 4" in text  # ~43.2 m³ of flat grain
+        assert "silo_agent_outbox_pending_messages" in text
 
         # --- SIGHUP with a bad config: rejected, the old one stays
         config.write_text(config.read_text() + "\n[bogus]\nkey = 1\n")

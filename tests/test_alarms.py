@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage
 
 from silo_agent.alarms import (
+    DETECTORS,
     AlarmState,
     Finding,
     Inputs,
@@ -17,6 +18,7 @@ from silo_agent.alarms import (
 )
 from silo_agent.config import AlarmsConfig
 from silo_agent.heightmap import HeightMap
+from silo_agent.telemetry.payloads import ALARM_TYPES
 
 STEP = 0.05
 HALF = 3.0
@@ -223,3 +225,26 @@ def test_disabled_alarms_raise_nothing_but_state_carries_on():
                              AlarmsConfig(enabled=False))
     assert events == [] and state.baseline_scan_id == "a"
     assert AlarmState.from_json(state.to_json()) == state
+
+
+def test_a_switched_off_detector_clears_its_alarm_in_the_next_scan():
+    """level_low raised, then low_volume_m3 removed (restart with the new config): the next
+    scan clears it with a `cleared` event; alarms.enabled = false clears whatever is raised."""
+    rng = np.random.default_rng(12)
+    _, state = evaluate(AlarmState(), inputs(surface(rng), "a", volume_m3=5.0, coverage=0.1),
+                        AlarmsConfig(low_volume_m3=10.0))
+    assert set(state.active) == {"level_low", "coverage"}
+    events, after = evaluate(state, inputs(surface(rng), "b", volume_m3=5.0, coverage=0.1),
+                             AlarmsConfig())
+    assert [(e["type"], e["state"], e["scan_id"]) for e in events] == [("level_low", "cleared",
+                                                                          "b")]
+    assert "low_volume_m3" in events[0]["message"] and set(after.active) == {"coverage"}
+    events, off = evaluate(state, inputs(surface(rng), "c", coverage=0.1),
+                           AlarmsConfig(enabled=False))
+    assert sorted((e["type"], e["state"]) for e in events) == [("coverage", "cleared"),
+                                                               ("level_low", "cleared")]
+    assert off.active == {}
+
+
+def test_alarm_types_every_consumer_declares_are_the_detectors_ones():
+    assert set(ALARM_TYPES) == set(DETECTORS) | {"calibration"}

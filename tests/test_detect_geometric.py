@@ -171,17 +171,21 @@ def test_process_prints_piles_by_default_without_onnxruntime(piles_scan: Scan, t
 
 
 def test_scan_carries_pile_ids_over_from_the_latest_earlier_result(tmp_path) -> None:
-    from silo_agent.cli import _previous_piles
+    from silo_agent.audit import AuditCache
+    from silo_agent.config import AuditConfig
+    from silo_agent.scan_service import previous_piles
 
     def result(scan_id: str, piles: list[Pile]) -> None:
         (tmp_path / scan_id).mkdir()
+        (tmp_path / scan_id / "scan.json").write_text("{}")  # a cached scan, time from mtime
         summary = {"scan_id": scan_id, "piles": [p.to_json() for p in piles]}
         (tmp_path / scan_id / "result.json").write_text(json.dumps(summary))
 
     result("silo-1-20260101T000000Z", [pile(1, 0.0, 0.0)])
     result("silo-1-20260101T010000Z", [pile(2, 1.0, 1.0), pile(5, 2.0, 0.0, "onnx")])
     result("silo-1-20260101T030000Z", [pile(9, 0.0, 0.0)])  # later than the scan: ignored
-    assert _previous_piles(tmp_path, "silo-1-20260101T020000Z") == [
+    cache = AuditCache(AuditConfig(directory=tmp_path))
+    assert previous_piles(cache, "silo-1-20260101T020000Z") == [
         pile(2, 1.0, 1.0), pile(5, 2.0, 0.0, "onnx")
     ]  # fmt: skip
-    assert _previous_piles(tmp_path, "silo-1-20251231T000000Z") == []
+    assert previous_piles(cache, "silo-1-20251231T000000Z") == []

@@ -210,8 +210,9 @@ def test_the_documented_numpy_decoder_decodes_a_published_map():
     namespace: dict = {}
     exec(code, namespace)
     hm = realistic_heightmap(rows=40, cols=50)
-    z, observed, origin, step = namespace["decode"](encode_heightmap(hm, "silo-t-9"))
-    assert origin == hm.origin and step == hm.step
+    m = namespace["decode"](encode_heightmap(hm, "silo-t-9"))
+    z, observed = m["z"], m["observed"]
+    assert m["origin"] == hm.origin and m["step"] == hm.step and m["scan_id"] == "silo-t-9"
     assert np.array_equal(np.isnan(z), np.isnan(hm.heights))
     assert np.nanmax(np.abs(z - hm.heights)) <= 0.0005 + 1e-9
     assert np.array_equal(observed, hm.observed)

@@ -25,8 +25,10 @@ from silo_agent.reconstruct.smooth import masked_smooth
 from silo_agent.reconstruct.volume import (
     DENOISE_SCALE_M,
     Levels,
+    base_plane,
     base_surface,
-    integrate_denoised,
+    counted_heights,
+    integrate_counted,
     surface_levels,
 )
 from silo_agent.scan import Scan, Site
@@ -276,11 +278,13 @@ def reconstruct(
         clock.lap("slope_correction")
     heights = np.where(grid.inside > 0, filled, np.nan)
     base = base_surface(grid, heights, site.base, site.floor_z)
-    volume = integrate_denoised(grid, heights, base, DENOISE_SCALE_M)
+    counted = counted_heights(grid, heights, base, DENOISE_SCALE_M)
+    volume = integrate_counted(grid, counted)
     clock.lap("volume")
     result = _result(
-        scan, site, settings, grid, fused, heights, observed, volume, parameters, clock
-    )
+        scan, site, settings, grid, fused, heights, observed, volume, parameters, clock,
+        counted=counted, base=base_plane(grid, heights, site.base, site.floor_z),
+    )  # fmt: skip
     result.points["after_downsampling"] = len(points)
     result.registration = registration
     return result
@@ -289,8 +293,10 @@ def reconstruct(
 def _result(
     scan: Scan, site: Site, settings: ReconstructionConfig, grid: Grid, fused: FusedCloud,
     heights: np.ndarray | None, observed: np.ndarray, volume: float | None,
-    parameters: dict[str, Any], clock: _Clock,
+    parameters: dict[str, Any], clock: _Clock, counted: np.ndarray | None = None,
+    base: tuple[float, float, float] | None = None,
 ) -> Result:  # fmt: skip
+    """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map."""
     region_area = float(np.sum(grid.inside))
     coverage = float(np.sum(grid.inside * observed) / region_area)
     valid, reason = True, None
@@ -302,8 +308,9 @@ def _result(
     heightmap = surface = None
     if heights is not None:
         heightmap = HeightMap(
-            grid.origin, grid.step, heights.astype(np.float32), observed, grid.inside
-        )
+            grid.origin, grid.step, heights.astype(np.float32), observed, grid.inside,
+            floor_z=site.floor_z, base=base, counted=counted, captured_at=scan.captured_at,
+        )  # fmt: skip
         if np.any(np.isfinite(heights)):
             surface = surface_levels(grid, heights)
     density = site.bulk_density_t_m3

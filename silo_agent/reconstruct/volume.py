@@ -29,16 +29,27 @@ def boundary_cells(inside: np.ndarray) -> np.ndarray:
     return region & ((inside < 1.0) | ~all_neighbours_in)
 
 
-def base_surface(grid: Grid, heights: np.ndarray, base: str, floor_z: float) -> np.ndarray:
-    """Height of the base under every cell: the floor, or a plane fitted along the boundary."""
+def base_plane(grid: Grid, heights: np.ndarray, base: str, floor_z: float
+               ) -> tuple[float, float, float]:
+    """(a, b, c) of the base under the grain, z = a*x + b*y + c: the floor, or a plane fitted
+    along the boundary. Published in the height map so a robot measures from the same base."""
     if base == "floor":
-        return np.full(grid.shape, floor_z)
+        return 0.0, 0.0, float(floor_z)
     ring = boundary_cells(grid.inside) & np.isfinite(heights)
     if ring.sum() < 3:
         raise ValueError("base = 'boundary' needs at least 3 boundary cells with a height")
     xs, ys = grid.centres()
     design = np.column_stack([xs[ring], ys[ring], np.ones(int(ring.sum()))])
     (a, b, c), *_ = np.linalg.lstsq(design, heights[ring], rcond=None)
+    return float(a), float(b), float(c)
+
+
+def base_surface(grid: Grid, heights: np.ndarray, base: str, floor_z: float) -> np.ndarray:
+    """Height of the base under every cell (`base_plane` evaluated at the cell centres)."""
+    if base == "floor":
+        return np.full(grid.shape, floor_z)
+    a, b, c = base_plane(grid, heights, base, floor_z)
+    xs, ys = grid.centres()
     return a * xs + b * ys + c
 
 
@@ -48,32 +59,44 @@ def integrate(grid: Grid, heights: np.ndarray, base: np.ndarray) -> float:
     return float(np.sum(above * grid.inside) * grid.cell_area)
 
 
-def integrate_denoised(grid: Grid, heights: np.ndarray, base: np.ndarray, scale_m: float) -> float:
-    """Volume above `base` with the clip at the base applied to a smoothed surface (see
-    `denoised_columns`)."""
-    return float(np.sum(denoised_columns(grid, heights, base, scale_m)) * grid.cell_area)
+def integrate_counted(grid: Grid, counted: np.ndarray) -> float:
+    """The volume: the heights the volume counts (`counted_heights`), weighted by the fraction
+    of each cell inside the region, times the cell area."""
+    return float(np.sum(counted_columns(grid, counted)) * grid.cell_area)
+
+
+def counted_columns(grid: Grid, counted: np.ndarray) -> np.ndarray:
+    """Per cell, the counted height times the fraction inside (0 where there is no surface).
+
+    Summed over any set of cells (a pile, the whole region) and multiplied by the cell area it
+    gives that set's volume, so per-pile volumes add up to the engine's total."""
+    return np.where(np.isfinite(counted), counted, 0.0) * grid.inside
 
 
 def denoised_columns(
     grid: Grid, heights: np.ndarray, base: np.ndarray, scale_m: float
 ) -> np.ndarray:
-    """Per cell, the height above `base` that the volume counts, times the fraction inside.
+    """`counted_columns` of a height map over `base`."""
+    return counted_columns(grid, counted_heights(grid, heights, base, scale_m))
 
-    Summed over any set of cells (a pile, the whole region) and multiplied by the cell area it
-    gives that set's volume, so per-pile volumes add up to the engine's total.
+
+def counted_heights(
+    grid: Grid, heights: np.ndarray, base: np.ndarray, scale_m: float
+) -> np.ndarray:
+    """Per cell, the height above `base` that the volume counts; NaN where there is no surface.
 
     Clipping each noisy cell at the base turns zero-mean sensor noise on a bare floor into a
     positive volume (about 0.4 sigma per cell). Here the surface is split into a smooth part
     (about Gaussian, `scale_m`) and the detail; only the smooth part is clipped, the detail is
-    summed signed. Real areas below the base survive smoothing and are still excluded; noise
-    cancels.
+    summed signed: counted = max(smooth, 0) + (height - base - smooth). Real areas below the
+    base survive smoothing and are still excluded; noise cancels.
     """
     region = (grid.inside > 0) & np.isfinite(heights)
     relative = np.where(region, heights - base, 0.0)
     smooth = masked_smooth(relative, region, max(scale_m / grid.step, 1.0))
     smooth = np.where(region, smooth, 0.0)
-    per_cell = np.maximum(smooth, 0.0) + (relative - smooth)
-    return per_cell * grid.inside
+    counted = np.maximum(smooth, 0.0) + (relative - smooth)
+    return np.where(region, counted, np.nan)
 
 
 def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:

@@ -1,13 +1,16 @@
-"""Binary wire format of `P/heightmap` ("SLHM" version 1), small enough to retain on a broker.
+"""Binary wire format of `P/heightmap` ("SLHM" version 2), small enough to retain on a broker.
 
-Everything a robot needs to place a cell is in the header, so nobody has to guess the origin,
-the row order or what "unknown" looks like (the usual complaints about grid maps).
+Everything a robot needs to place a cell, and to integrate the published volume from the map,
+is in the message, so nobody has to guess the origin, the row order, the base or what
+"unknown" looks like (the usual complaints about grid maps).
 
-Layout, little-endian:
+Layout, little-endian. Version 2 is version 1 (offsets 0 to the end of the inside layer are
+unchanged) followed by an extension, so a version-1 decoder that ignores trailing bytes still
+reads a version-2 map:
 
     offset size  field
     0      4     magic b"SLHM"
-    4      1     version = 1
+    4      1     version = 2 (1: no extension)
     5      1     height encoding: 1 = uint16 millimetres above z_offset_m
     6      1     filter: 1 = per-row horizontal difference modulo 2**16 (undo with a cumsum)
     7      1     flags: bit 0 = row 0 is the minimum-y row, bit 1 = origin is the outer corner
@@ -29,9 +32,19 @@ Layout, little-endian:
            O     zlib(numpy.packbits(observed, bitorder="big")), row-major, 1 = measured,
                  0 = filled by interpolation or unknown
            I     zlib(uint8[rows, cols] round(inside * 255)): fraction of the cell inside the region
+    E = 66+F+S+H+O+I, the version-2 extension:
+    E      8     floor_z_m (float64), silo-frame z of the floor (level = z - floor_z); NaN unknown
+    E+8    24    base_a, base_b, base_c (float64): the volume's base, z = a*x + b*y + c; NaN unknown
+    E+32   8     counted_offset_m (float64): value of counted code 0
+    E+40   2     captured_at length T (uint16)
+    E+42   4     counted blob length C (uint32); 0 = no counted layer
+    E+46   T     captured_at, UTF-8 RFC 3339 (when the scan was taken)
+           C     zlib(uint16[rows, cols] after the filter), row-major: per cell, millimetres
+                 above counted_offset_m of the height above the base that the published volume
+                 counts; volume_m3 = step**2 * sum(counted * inside)
 
-Heights are rounded to the millimetre, so a decoded height is within 0.5 mm of the published
-one; unknown cells decode to NaN.
+Heights and counted heights are rounded to the millimetre, so a decoded value is within
+0.5 mm of the published one; unknown cells decode to NaN.
 """
 
 from __future__ import annotations
@@ -45,7 +58,8 @@ import numpy as np
 from silo_agent.heightmap import HeightMap
 
 MAGIC = b"SLHM"
-VERSION = 1
+VERSION = 2
+VERSIONS = (1, 2)  # what the decoder reads
 ENCODING_UINT16_MM = 1
 FILTER_ROW_DELTA = 1
 FLAG_ROW0_MIN_Y = 1
@@ -53,6 +67,7 @@ FLAG_ORIGIN_OUTER_CORNER = 2
 UNKNOWN = 0xFFFF
 FRAME_ID = "silo"
 HEADER = struct.Struct("<4sBBBBIIddddHHHIII")
+EXTENSION = struct.Struct("<dddddHI")  # version 2, after the inside layer
 MAX_RANGE_M = (UNKNOWN - 1) / 1000.0
 
 
@@ -60,61 +75,78 @@ class HeightMapFormatError(ValueError):
     """Bytes that are not a height map this decoder understands."""
 
 
-def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> bytes:
-    """Encode a height map; raises ValueError if its heights span more than 65.534 m."""
-    heights = np.asarray(hm.heights, dtype=np.float64)
-    rows, cols = heights.shape
-    known = np.isfinite(heights)
+def _codes(values: np.ndarray, what: str) -> tuple[float, bytes]:
+    """(offset, zlib blob) of values in millimetres above the offset, row-delta filtered."""
+    values = np.asarray(values, dtype=np.float64)
+    known = np.isfinite(values)
     if known.any():
-        z_offset = math.floor(float(heights[known].min()) * 1000.0) / 1000.0
-        span = float(heights[known].max()) - z_offset
+        offset = math.floor(float(values[known].min()) * 1000.0) / 1000.0
+        span = float(values[known].max()) - offset
         if span > MAX_RANGE_M:
-            raise ValueError(f"heights span {span:.3f} m, the format holds {MAX_RANGE_M} m")
+            raise ValueError(f"{what} span {span:.3f} m, the format holds {MAX_RANGE_M} m")
     else:
-        z_offset = 0.0
-    codes = np.full((rows, cols), UNKNOWN, dtype=np.uint16)
-    codes[known] = np.rint((heights[known] - z_offset) * 1000.0).astype(np.uint16)
+        offset = 0.0
+    codes = np.full(values.shape, UNKNOWN, dtype=np.uint16)
+    codes[known] = np.rint((values[known] - offset) * 1000.0).astype(np.uint16)
     filtered = codes.copy()
     filtered[:, 1:] = codes[:, 1:] - codes[:, :-1]  # uint16 arithmetic wraps: modulo 2**16
-    heights_blob = zlib.compress(filtered.astype("<u2").tobytes(), 9)
+    return offset, zlib.compress(filtered.astype("<u2").tobytes(), 9)
+
+
+def _values(blob: bytes, offset: float, unknown: int, rows: int, cols: int) -> np.ndarray:
+    filtered = np.frombuffer(blob, dtype="<u2").reshape(rows, cols)
+    codes = np.cumsum(filtered, axis=1, dtype=np.uint16)
+    return np.where(codes == unknown, np.nan, offset + codes / 1000.0)
+
+
+def _or_nan(value: float | None) -> float:
+    return math.nan if value is None else float(value)
+
+
+def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID) -> bytes:
+    """Encode a height map; raises ValueError if its heights span more than 65.534 m."""
+    rows, cols = hm.shape
+    z_offset, heights_blob = _codes(hm.heights, "heights")
     observed_blob = zlib.compress(
         np.packbits(np.asarray(hm.observed, dtype=bool).ravel(), bitorder="big").tobytes(), 9
     )
     inside = np.clip(np.rint(np.asarray(hm.inside, dtype=np.float64) * 255.0), 0, 255)
     inside_blob = zlib.compress(inside.astype(np.uint8).tobytes(), 9)
+    counted_offset, counted_blob = 0.0, b""
+    if hm.counted is not None:
+        counted_offset, counted_blob = _codes(hm.counted, "counted heights")
+    base = hm.base or (None, None, None)
     frame = frame_id.encode()
     scan = scan_id.encode()
+    captured = (hm.captured_at or "").encode()
     header = HEADER.pack(
-        MAGIC,
-        VERSION,
-        ENCODING_UINT16_MM,
-        FILTER_ROW_DELTA,
-        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER,
-        rows,
-        cols,
-        float(hm.step),
-        float(hm.origin[0]),
-        float(hm.origin[1]),
-        z_offset,
-        UNKNOWN,
-        len(frame),
-        len(scan),
-        len(heights_blob),
-        len(observed_blob),
-        len(inside_blob),
-    )
-    return b"".join([header, frame, scan, heights_blob, observed_blob, inside_blob])
+        MAGIC, VERSION, ENCODING_UINT16_MM, FILTER_ROW_DELTA,
+        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER, rows, cols, float(hm.step),
+        float(hm.origin[0]), float(hm.origin[1]), z_offset, UNKNOWN, len(frame), len(scan),
+        len(heights_blob), len(observed_blob), len(inside_blob),
+    )  # fmt: skip
+    extension = EXTENSION.pack(
+        _or_nan(hm.floor_z), *(_or_nan(v) for v in base), counted_offset, len(captured),
+        len(counted_blob),
+    )  # fmt: skip
+    return b"".join([header, frame, scan, heights_blob, observed_blob, inside_blob, extension,
+                     captured, counted_blob])  # fmt: skip
+
+
+def _known(value: float) -> float | None:
+    return None if math.isnan(value) else value
 
 
 def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
-    """Decode to (height map, scan id, frame id)."""
+    """Decode version 1 or 2 to (height map, scan id, frame id); what version 1 lacks (floor,
+    base, counted heights, capture time) is None."""
     if len(data) < HEADER.size or data[:4] != MAGIC:
         raise HeightMapFormatError("not an SLHM height map (bad magic or too short)")
     (
         _magic, version, encoding, filt, flags, rows, cols, step, ox, oy, z_offset,
         unknown, f_len, s_len, h_len, o_len, i_len,
-    ) = HEADER.unpack_from(data)
-    if version != VERSION or encoding != ENCODING_UINT16_MM or filt != FILTER_ROW_DELTA:
+    ) = HEADER.unpack_from(data)  # fmt: skip
+    if version not in VERSIONS or encoding != ENCODING_UINT16_MM or filt != FILTER_ROW_DELTA:
         raise HeightMapFormatError(
             f"unsupported SLHM version {version} / encoding {encoding} / filter {filt}"
         )
@@ -129,26 +161,44 @@ def decode_heightmap_with_ids(data: bytes) -> tuple[HeightMap, str, str]:
     for length in (h_len, o_len, i_len):
         blobs.append(data[pos : pos + length])
         pos += length
+    floor_z = base = captured_at = None
+    counted_offset, counted_blob = 0.0, b""
+    if version >= 2:
+        if len(data) < pos + EXTENSION.size:
+            raise HeightMapFormatError("length mismatch: the version 2 extension is cut short")
+        floor, a, b, c, counted_offset, t_len, c_len = EXTENSION.unpack_from(data, pos)
+        pos += EXTENSION.size
+        floor_z = _known(floor)
+        base = None if math.isnan(c) else (a, b, c)
+        captured_at = data[pos : pos + t_len].decode() or None
+        pos += t_len
+        counted_blob = data[pos : pos + c_len]
+        pos += c_len
     if pos != len(data):
         raise HeightMapFormatError(f"length mismatch: header says {pos} bytes, got {len(data)}")
     try:
         raw = [zlib.decompress(b) for b in blobs]
+        counted_raw = zlib.decompress(counted_blob) if counted_blob else None
     except zlib.error as exc:
         raise HeightMapFormatError(f"corrupt compressed layer: {exc}") from None
     n = rows * cols
-    if len(raw[0]) != 2 * n or len(raw[1]) != (n + 7) // 8 or len(raw[2]) != n:
+    if (len(raw[0]) != 2 * n or len(raw[1]) != (n + 7) // 8 or len(raw[2]) != n
+            or (counted_raw is not None and len(counted_raw) != 2 * n)):  # fmt: skip
         raise HeightMapFormatError("layer sizes do not match rows x cols")
-    filtered = np.frombuffer(raw[0], dtype="<u2").reshape(rows, cols)
-    codes = np.cumsum(filtered, axis=1, dtype=np.uint16)
-    heights = np.where(codes == unknown, np.nan, z_offset + codes / 1000.0)
     observed = np.unpackbits(np.frombuffer(raw[1], dtype=np.uint8), count=n, bitorder="big")
-    inside = np.frombuffer(raw[2], dtype=np.uint8).reshape(rows, cols) / 255.0
+    counted = None
+    if counted_raw is not None:
+        counted = _values(counted_raw, counted_offset, unknown, rows, cols)
     hm = HeightMap(
         origin=(ox, oy),
         step=step,
-        heights=heights,
+        heights=_values(raw[0], z_offset, unknown, rows, cols),
         observed=observed.reshape(rows, cols).astype(bool),
-        inside=inside,
+        inside=np.frombuffer(raw[2], dtype=np.uint8).reshape(rows, cols) / 255.0,
+        floor_z=floor_z,
+        base=base,
+        counted=counted,
+        captured_at=captured_at,
     )
     return hm, scan_id, frame
 

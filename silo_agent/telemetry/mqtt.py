@@ -21,7 +21,7 @@ import random
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,11 +33,11 @@ from paho.mqtt.properties import Properties
 from pydantic import ValidationError
 
 from silo_agent import __version__
-from silo_agent.config import Config, ConfigError, MqttConfig
+from silo_agent.config import Config, ConfigError, MqttConfig, stale_after_s
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
-from silo_agent.telemetry.outbox import Outbox, OutboxLimits, Row
+from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits, Row
 from silo_agent.telemetry.payloads import (
     ALARM_TYPES,
     MAX_COMMAND_BYTES,
@@ -50,6 +50,7 @@ from silo_agent.telemetry.payloads import (
     alarm_payload,
     check_summary,
     describe_errors,
+    idle_alarm,
     scan_payload,
     volume_payload,
 )
@@ -59,8 +60,53 @@ log = structlog.get_logger(__name__)
 KIND_JSON = "json"
 KIND_BINARY = "binary"
 KIND_SPARKPLUG = "sparkplug"
-HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=1"
+HEIGHTMAP_CONTENT_TYPE = "application/vnd.silo-agent.heightmap;version=2"
 LOOP_TIMEOUT_S = 0.01
+MAX_TOPIC_BYTES = 65535  # MQTT's two-byte string length
+# After a session that ended within POISON_SESSION_S of connecting with messages unacknowledged,
+# the next sessions send one message at a time ("probing"); a message that was the one in
+# flight when POISON_STRIKES probing sessions in a row ended is one the broker will not take
+# (a limit it does not announce, e.g. its maximum packet size under MQTT 3.1.1): dead-lettered.
+POISON_STRIKES = 3
+POISON_SESSION_S = 10.0
+
+
+def reply_topic_problem(topic: str, reserved: Iterable[str], allowed: str) -> str | None:
+    """Why a requested MQTT 5 Response Topic must not be published to, or None if it may.
+
+    A topic paho or the broker refuses would sit at the head of the outbox; one among the
+    agent's own (or Sparkplug / Home Assistant) topics would put reply JSON where consumers
+    expect something else. `allowed`, the documented reply topic, is always fine."""
+    if topic == allowed:
+        return None
+    if not topic:
+        return "it is empty"
+    if "+" in topic or "#" in topic:
+        return "it contains a wildcard (+ or #)"
+    if topic.startswith("$"):
+        return "it starts with $ (reserved for the broker)"
+    if "\x00" in topic:
+        return "it contains a NUL character"
+    try:
+        size = len(topic.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "it is not valid UTF-8"
+    if size > MAX_TOPIC_BYTES:
+        return f"it is {size} bytes long, MQTT allows {MAX_TOPIC_BYTES}"
+    for space in reserved:
+        if topic == space or topic.startswith(space + "/"):
+            return f"it is under {space}/, where the agent publishes"
+    return None
+
+
+def publish_packet_size(topic: str, payload: bytes, qos: int, props: Properties | None,
+                        v5: bool) -> int:
+    """Bytes of the PUBLISH packet paho will send, to compare with the broker's maximum."""
+    body = 2 + len(topic.encode("utf-8")) + (2 if qos else 0) + len(payload)
+    if v5:
+        body += len(props.pack()) if props is not None else 1
+    length_bytes = 1 + sum(body >= limit for limit in (128, 16384, 2097152))
+    return 1 + length_bytes + body
 
 
 class CommandRejected(Exception):
@@ -93,6 +139,10 @@ class _Link:
     connected: bool = False
     refused: str | None = None
     connected_at: float = 0.0
+    max_packet: int | None = None  # the broker's Maximum Packet Size (MQTT 5 CONNACK)
+    will_seq: int = 0  # seq of the Last Will of the JSON link, above all the session sends
+    probing: bool = False  # one message in flight at a time, to find one the broker drops us over
+    suspect: tuple[int, int] = (0, 0)  # (row id, probing sessions in a row it ended in flight)
     last_id: int = 0
     inflight: dict[int, tuple[int, str]] = field(default_factory=dict)
     direct: dict[int, str] = field(default_factory=dict)
@@ -105,6 +155,7 @@ class _Link:
     def reset_session(self) -> None:
         self.connected = False
         self.refused = None
+        self.max_packet = None
         self.last_id = 0
         self.inflight.clear()
         self.direct.clear()
@@ -138,8 +189,11 @@ class Telemetry:
         camera_serials: Iterable[str] = (),
         *,
         version: str = __version__,
+        expire_after_s: int | None = None,
     ) -> None:
+        """`expire_after_s`: how long HA keeps showing a reading without a new one."""
         self.cfg = cfg
+        self.expire_after_s = expire_after_s
         self.silo_id = silo_id
         self.version = version
         self.base = f"{cfg.topic_prefix}/{silo_id}"
@@ -165,7 +219,9 @@ class Telemetry:
         }
         self._last_scan_id: str | None = None
         self._alarm_types: list[str] = list(ALARM_TYPES)
+        self._alarm_states: dict[str, dict] = {t: idle_alarm(t) for t in ALARM_TYPES}
         self._status_dirty = False
+        self._alarms_dirty = False
         self._ha_dirty = False
         self._rebirth = False
         self._host_online = False
@@ -183,10 +239,27 @@ class Telemetry:
             self.outbox.discard_kind(KIND_SPARKPLUG)
         for link in self._links:
             link.delay = cfg.reconnect_min_s
+        self._report_outbox_damage()
+
+    def _report_outbox_damage(self) -> None:
+        """The `outbox` alarm: raised when a corrupt outbox was moved aside at open (what it
+        held is lost), cleared at a later start once no moved-aside copy is left."""
+        change = self.outbox.corrupt_alarm_change()
+        if change is None:
+            return
+        aside = self.outbox.moved_aside
+        message = (
+            f"outbox database {self.outbox.path} was corrupt: moved aside to {aside.name},"
+            " the messages queued in it were not sent; remove it once inspected"
+            if aside is not None else "no corrupt outbox copy left"
+        )
+        self.publish_alarm({"type": "outbox", "state": change, "scan_id": None,
+                            "severity": "warning", "message": message})
 
     @classmethod
     def from_config(cls, config: Config) -> Telemetry:
-        return cls(config.mqtt, config.silo.id, [c.serial for c in config.cameras])
+        return cls(config.mqtt, config.silo.id, [c.serial for c in config.cameras],
+                   expire_after_s=stale_after_s(config.schedule, config.silo.timezone))
 
     # ------------------------------------------------------------ topics
 
@@ -234,19 +307,40 @@ class Telemetry:
     def publish_alarm(self, event: dict) -> Envelope:
         """Queue an alarm event on `P/alarm` and the current state on `P/alarm/<type>`."""
         alarm_payload(Envelope.new(1), event)  # validate before anything is committed
+        with self._lock:  # before the queue: a state snapshot must never be older than it
+            self._alarm_states[event["type"]] = dict(event)
+            if event["type"] not in self._alarm_types:
+                self._alarm_types.append(event["type"])
+                self._ha_dirty = True
         env = self._enqueue_json("alarm", lambda e: alarm_payload(e, event).to_bytes())
         self._enqueue_json(
             f"alarm/{event['type']}", lambda e: alarm_payload(e, event).to_bytes(), retain=True
         )
-        with self._lock:
-            if event["type"] not in self._alarm_types:
-                self._alarm_types.append(event["type"])
-                self._ha_dirty = True
         if self.spb.enabled:
             with self._lock:
                 raw, new_metric = self.spb_node.data_from_alarm(event)
             self._enqueue_sparkplug(raw, new_metric)
         return env
+
+    def restore_alarms(self, active: Mapping[str, Mapping]) -> None:
+        """The raised alarms persisted by the last run (type -> its `raised` event): every
+        birth and state snapshot from now on carries them instead of `cleared`."""
+        with self._lock:
+            for alarm_type, event in active.items():
+                self._alarm_states[alarm_type] = dict(event)
+                if alarm_type not in self._alarm_types:
+                    self._alarm_types.append(alarm_type)
+                    self._ha_dirty = True
+            self.spb_node.restore_alarms(active)
+            self._alarms_dirty = True
+            self._rebirth = True
+
+    def set_expire_after(self, seconds: int | None) -> None:
+        """A new schedule, a new staleness limit: HA gets the discovery config again."""
+        with self._lock:
+            if seconds != self.expire_after_s:
+                self.expire_after_s = seconds
+                self._ha_dirty = self.cfg.homeassistant.enabled
 
     def set_status(
         self,
@@ -423,13 +517,14 @@ class Telemetry:
                 keyfile_password=self.key_password,
             )
         if link.name == "json":
-            will = self._status_payload("offline", self.outbox.next_envelope()).to_bytes()
+            link.will_seq = self.outbox.will_seq()
+            will = self._status_payload("offline", Envelope.new(link.will_seq)).to_bytes()
             client.will_set(self.topic("status"), will, qos=1, retain=True)
         else:
             link.bd_seq = self.outbox.next_bd_seq()
             will = sparkplug.SparkplugNode.death(link.bd_seq)
             client.will_set(self.spb_topics.node("NDEATH"), will, qos=1, retain=False)
-        client.on_connect = lambda c, u, f, rc, p: self._on_connect(link, rc)
+        client.on_connect = lambda c, u, f, rc, p: self._on_connect(link, rc, p)
         client.on_disconnect = lambda c, u, f, rc, p: self._on_disconnect(link, rc)
         client.on_publish = lambda c, u, mid, rc, p: self._on_publish(link, mid, rc)
         client.on_subscribe = lambda c, u, mid, rcs, p: self._on_subscribe(link, rcs)
@@ -466,6 +561,10 @@ class Telemetry:
         if client is not None:
             client.disconnect()
         was_connected = link.connected
+        if was_connected and link.name == "json":
+            self.outbox.pass_will()
+        if was_connected and link.refused is None:  # not a reconnect of our own choosing
+            self._strike_head_row(link)
         if was_connected:
             log.warning(
                 "connection to the broker lost", link=link.name, reason=reason,
@@ -474,6 +573,28 @@ class Telemetry:
             link.delay = self.cfg.reconnect_min_s
         link.reset_session()
         self._schedule_retry(link, reason, quiet=was_connected)
+
+    def _strike_head_row(self, link: _Link) -> None:
+        """After a short session with messages unacknowledged, probe: send one at a time.
+        A message that was the one in flight when POISON_STRIKES probing sessions in a row
+        ended is dead-lettered, so that it cannot hold up the outbox for ever."""
+        short = time.time() - link.connected_at <= POISON_SESSION_S
+        if not link.inflight or not short:
+            link.probing, link.suspect = False, (0, 0)
+            return
+        if link.probing:
+            head = min(row_id for row_id, _topic in link.inflight.values())
+            strikes = link.suspect[1] + 1 if link.suspect[0] == head else 1
+            link.suspect = (head, strikes)
+            if strikes >= POISON_STRIKES:
+                row = self.outbox.row(head)
+                if row is not None:
+                    self._dead_letter(
+                        link, row, f"the broker closed the connection each time it was sent"
+                        f" ({strikes} sessions in a row)",
+                    )
+                link.suspect = (0, 0)
+        link.probing = True
 
     def _schedule_retry(self, link: _Link, reason: str, quiet: bool = False) -> None:
         wait = link.delay * random.uniform(0.8, 1.2)
@@ -487,7 +608,9 @@ class Telemetry:
 
     # ------------------------------------------------------------ callbacks
 
-    def _on_connect(self, link: _Link, reason: mqtt.ReasonCode) -> None:
+    def _on_connect(
+        self, link: _Link, reason: mqtt.ReasonCode, properties: Properties | None
+    ) -> None:
         if reason.is_failure:
             link.refused = f"broker refused the connection: {reason}"
             if reason.value in (0x86, 0x87, 4, 5):
@@ -498,6 +621,7 @@ class Telemetry:
             return
         link.connected = True
         link.connected_at = time.time()
+        link.max_packet = getattr(properties, "MaximumPacketSize", None)
         link.delay = self.cfg.reconnect_min_s
         client = link.client
         assert client is not None
@@ -510,6 +634,7 @@ class Telemetry:
             client.subscribe(subs)
             with self._lock:
                 self._status_dirty = True
+                self._alarms_dirty = True
                 self._ha_dirty = self.cfg.homeassistant.enabled
         else:
             subs = [(self.spb_topics.node("NCMD"), 0)]
@@ -552,6 +677,7 @@ class Telemetry:
             if msg.payload.strip() == b"online":
                 with self._lock:
                     self._ha_dirty = True
+                    self._alarms_dirty = True
         elif msg.topic == self.spb_topics.node("NCMD"):
             if sparkplug.is_rebirth_request(msg.payload):
                 log.info("Sparkplug rebirth requested")
@@ -582,9 +708,25 @@ class Telemetry:
             )
             link.refused = "primary host went offline"
 
+    def _reply_namespaces(self) -> list[str]:
+        """Where replies must not go: every topic the agent (or a sibling agent) publishes."""
+        spaces = [self.cfg.topic_prefix.rstrip("/") or self.base, sparkplug.NAMESPACE]
+        if self.cfg.homeassistant.enabled:
+            spaces.append(self.cfg.homeassistant.discovery_prefix.rstrip("/"))
+        return spaces
+
     def _handle_scan_command(self, msg: mqtt.MQTTMessage) -> None:
+        if msg.retain:
+            # the broker replays a retained command at every subscribe: it would scan at
+            # every start; the live delivery (retain flag clear) was already answered
+            log.warning(
+                "ignoring a retained scan request; clear it with an empty retained message",
+                topic=msg.topic,
+            )
+            return
         props = getattr(msg, "properties", None)
-        reply_topic = getattr(props, "ResponseTopic", None) or self.topic("cmd/scan/reply")
+        fallback = self.topic("cmd/scan/reply")
+        reply_topic = getattr(props, "ResponseTopic", None) or fallback
         correlation = getattr(props, "CorrelationData", None)
         request_id: str | None = None
         error: str | None = None
@@ -608,6 +750,10 @@ class Telemetry:
                         request = ScanRequest.model_validate(body)
                     except ValidationError as exc:
                         error = f"invalid request: {describe_errors(exc)}"
+        topic_problem = reply_topic_problem(reply_topic, self._reply_namespaces(), fallback)
+        if topic_problem is not None:  # answered where the requester can always listen
+            error = f"response topic {reply_topic[:200]!r} refused: {topic_problem}"
+            reply_topic = fallback
         if error is None:
             command = ScanCommand(request.request_id, reply_topic, correlation)
             callback = self._scan_callback
@@ -634,13 +780,21 @@ class Telemetry:
     def _serve(self, link: _Link) -> None:
         """Per loop turn on a connected link: session messages, then outbox rows."""
         if link.name == "json":
+            if self.outbox.last_seq >= link.will_seq - WILL_SEQ_HEADROOM // 10:
+                # the session is about to use the seq of its own Last Will: a new session
+                # arms a higher one
+                link.refused = "re-arming the Last Will above the seq in use"
+                return
             with self._lock:
                 status_dirty, self._status_dirty = self._status_dirty, False
                 ha_dirty, self._ha_dirty = self._ha_dirty, False
+                alarms_dirty, self._alarms_dirty = self._alarms_dirty, False
             if status_dirty:
                 self._publish_status(link, "online")
-            if ha_dirty:
+            if ha_dirty and self.cfg.homeassistant.enabled:
                 self._publish_discovery(link)
+            if alarms_dirty:
+                self._publish_alarm_states(link)
         else:
             with self._lock:
                 rebirth, self._rebirth = self._rebirth, False
@@ -666,13 +820,22 @@ class Telemetry:
         payload = self._status_payload(state, self.outbox.next_envelope()).to_bytes()
         return self._direct(link, self.topic("status"), payload, retain=True)
 
+    def _publish_alarm_states(self, link: _Link) -> None:
+        """The current state of every alarm type, retained, so a fresh subscriber (HA) never
+        shows an alarm as unknown; the outbox sends later changes after these."""
+        with self._lock:
+            states = [dict(e) for e in self._alarm_states.values()]
+        for event in states:
+            payload = alarm_payload(self.outbox.next_envelope(), event).to_bytes()
+            self._direct(link, self.topic(f"alarm/{event['type']}"), payload, retain=True)
+
     def _publish_discovery(self, link: _Link) -> None:
         ha = self.cfg.homeassistant
         with self._lock:
             alarm_types = list(self._alarm_types)
         topic, payload = homeassistant.discovery_config(
             discovery_prefix=ha.discovery_prefix, base_topic=self.base, silo_id=self.silo_id,
-            version=self.version, alarm_types=alarm_types,
+            version=self.version, alarm_types=alarm_types, expire_after_s=self.expire_after_s,
         )
         self._direct(link, topic, payload, retain=True)
         log.info("Home Assistant discovery published", topic=topic)
@@ -701,20 +864,33 @@ class Telemetry:
                 pending=pending,
                 dropped=self.outbox.counter("dropped"),
                 rejected=self.outbox.counter("rejected"),
+                dead_lettered=self.outbox.counter("dead_lettered"),
             ),
         )
 
     def _pump(self, link: _Link) -> None:
         """Hand the next outbox rows to paho, keeping at most max_inflight unacknowledged."""
-        room = self.cfg.max_inflight - len(link.inflight)
+        if link.probing and time.time() - link.connected_at > POISON_SESSION_S:
+            link.probing, link.suspect = False, (0, 0)  # the link holds: full speed again
+        room = (1 if link.probing else self.cfg.max_inflight) - len(link.inflight)
         if room <= 0:
             return
         assert link.client is not None
         for row in self.outbox.pending(link.last_id, room, link.kinds):
             topic, payload, props = self._prepare(link, row)
-            info = link.client.publish(
-                topic, payload, qos=row.qos, retain=row.retain, properties=props
-            )
+            size = publish_packet_size(topic, payload, row.qos, props, self.cfg.protocol == "5")
+            if link.max_packet is not None and size > link.max_packet:
+                self._dead_letter(
+                    link, row, f"{size}-byte packet, the broker's maximum is {link.max_packet}"
+                )
+                continue
+            try:
+                info = link.client.publish(
+                    topic, payload, qos=row.qos, retain=row.retain, properties=props
+                )
+            except ValueError as exc:  # paho refuses it (e.g. a wildcard topic): it always will
+                self._dead_letter(link, row, f"paho refused it: {exc}")
+                continue
             if info.rc != mqtt.MQTT_ERR_SUCCESS:
                 break  # connection gone: the next session starts again from the oldest row
             link.last_id = row.id
@@ -724,6 +900,17 @@ class Telemetry:
                 link.acked_rows.append(row.id)
             else:
                 link.inflight[info.mid] = (row.id, row.topic)
+
+    def _dead_letter(self, link: _Link, row: Row, reason: str) -> None:
+        """Set aside a row that can never be published, so the rows behind it go out."""
+        self.outbox.dead_letter(row.id, reason)
+        link.last_id = row.id
+        log.error(
+            "message can never be published: dead-lettered", topic=row.topic[:200],
+            msg_id=row.msg_id, reason=reason, outbox=str(self.outbox.path),
+        )
+        with self._lock:
+            self._status_dirty = True
 
     def _prepare(self, link: _Link, row: Row) -> tuple[str, bytes, Properties | None]:
         payload = row.payload
@@ -749,11 +936,13 @@ class Telemetry:
     def _shutdown(self) -> None:
         """`stopped` on P/status and NDEATH, each waited for briefly, then disconnect."""
         waiting: list[tuple[_Link, int]] = []
+        stopped: tuple[_Link, int] | None = None
         for link in self._links:
             if link.client is None or not link.connected:
                 continue
             if link.name == "json":
-                waiting.append((link, self._publish_status(link, "stopped")))
+                stopped = (link, self._publish_status(link, "stopped"))
+                waiting.append(stopped)
             elif link.born:
                 death = sparkplug.SparkplugNode.death(link.bd_seq)
                 waiting.append(
@@ -766,6 +955,8 @@ class Telemetry:
                     link.client.loop(timeout=LOOP_TIMEOUT_S)
                     self._flush_acks(link)
             waiting = [(k, m) for k, m in waiting if m not in k.acked and k.client is not None]
+        if stopped is not None and stopped[1] in stopped[0].acked:
+            self.outbox.disarm_will()  # `stopped` is in; the clean disconnect drops the will
         for link in self._links:
             if link.client is not None:
                 link.client.disconnect()

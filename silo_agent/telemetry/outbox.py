@@ -5,20 +5,30 @@ Rows are sent oldest first (ascending id) and keep the `msg_id`, `seq` and `ts` 
 made with. Bounds (count, bytes, age) drop the oldest non-retained messages first; retained
 "latest" topics keep only their newest pending value. The message counter `seq`, the Sparkplug
 `bdSeq` and the drop counters live in the same database, so they survive restarts with it.
+
+A row that can never be published (paho refuses its topic, it exceeds the broker's packet
+size) is dead-lettered: moved to the `dead_letter` table and counted, so it cannot block the
+rows behind it. A corrupt database is moved aside at open and a fresh one started; `seq` and
+`bdSeq` then continue from a small state file beside it (`<outbox>.state.json`, replaced
+atomically), which always holds a `seq` at or above every one handed out.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 import structlog
 
+from silo_agent.atomic import write_atomic
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry.payloads import Envelope
 
@@ -40,7 +50,24 @@ CREATE TABLE IF NOT EXISTS messages (
     size INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS dead_letter (
+    id INTEGER PRIMARY KEY,       -- the row's id in messages
+    topic TEXT NOT NULL,
+    payload BLOB NOT NULL,
+    qos INTEGER NOT NULL,
+    retain INTEGER NOT NULL,
+    kind TEXT NOT NULL,
+    msg_id TEXT,
+    seq INTEGER,
+    correlation BLOB,
+    created REAL NOT NULL,
+    reason TEXT NOT NULL,         -- why it can never be published
+    dead_at REAL NOT NULL
+);
 """
+DEAD_LETTER_KEEP = 1000  # newest dead letters kept for inspection; the counter counts all
+SEQ_RESERVE = 1000  # seq values the state file reserves at a time (one fsync per block)
+WILL_SEQ_HEADROOM = 1_000_000  # seq values a session may use below its Last Will's seq
 
 
 @dataclass(frozen=True)
@@ -66,6 +93,13 @@ class Row:
     created: float
 
 
+def _to_row(r: tuple) -> Row:
+    """A Row from the columns id, topic, payload, qos, retain, kind, msg_id, seq, correlation,
+    created (in that order) of a SELECT."""
+    return Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
+               None if r[8] is None else bytes(r[8]), r[9])
+
+
 class Outbox:
     """Thread-safe: producers enqueue from any thread, the MQTT thread reads and acks."""
 
@@ -73,11 +107,99 @@ class Outbox:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.limits = limits or OutboxLimits()
+        self.state_path = self.path.with_name(self.path.name + ".state.json")
+        self.moved_aside: Path | None = None  # where a corrupt outbox went at open, if it was
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.executescript(SCHEMA)
+        try:
+            self._db = self._connect()
+        except sqlite3.DatabaseError as exc:
+            self.moved_aside = self._move_aside(exc)
+            self._db = self._connect()
+        self._state = self._read_state()
+        self._resume_counters()
+
+    def _connect(self) -> sqlite3.Connection:
+        """Open and check the database; sqlite3.DatabaseError if it is not a sound one."""
+        db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=FULL")
+            db.executescript(SCHEMA)
+            (verdict,) = db.execute("PRAGMA quick_check").fetchone()
+            if verdict != "ok":
+                raise sqlite3.DatabaseError(f"integrity check failed: {verdict}")
+        except sqlite3.DatabaseError:
+            db.close()
+            raise
+        return db
+
+    def _move_aside(self, exc: sqlite3.DatabaseError) -> Path:
+        """Rename the corrupt database (and its WAL and shared-memory files) with a UTC
+        timestamp, so that the agent starts and the file stays for inspection."""
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
+        for suffix in ("", "-wal", "-shm"):
+            source = self.path.with_name(self.path.name + suffix)
+            if source.exists():
+                os.replace(source, aside.with_name(aside.name + suffix))
+        log.error(
+            "outbox database is corrupt: moved aside, starting with an empty outbox",
+            path=str(self.path), moved_to=str(aside), error=str(exc),
+        )
+        return aside
+
+    # ------------------------------------------------------------ state file
+
+    def _read_state(self) -> dict[str, int]:
+        """The counters of the state file; empty if there is none or it is unreadable."""
+        try:
+            data = json.loads(self.state_path.read_text(encoding="utf-8"))
+            state = {name: int(data[name]) for name in ("seq", "bd_seq")}
+            state["corrupt_alarm"] = int(data.get("corrupt_alarm", 0))
+            return state
+        except FileNotFoundError:
+            return {}
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("outbox state file unreadable, ignored", path=str(self.state_path),
+                        error=str(exc))
+            return {}
+
+    def _write_state(self) -> None:
+        """Replace the state file atomically (write, fsync, rename, fsync the directory)."""
+        try:
+            write_atomic(self.state_path, json.dumps(self._state).encode("utf-8"))
+        except OSError as exc:
+            log.warning("cannot write the outbox state file", path=str(self.state_path),
+                        error=str(exc))
+
+    def _resume_counters(self) -> None:
+        """A database without a `seq` (new, emptied or replaced) continues from the state
+        file, so `seq` and `bdSeq` never go back."""
+        with self._tx():
+            if self._db.execute("SELECT 1 FROM counters WHERE name = 'seq'").fetchone() is None:
+                for name in ("seq", "bd_seq"):
+                    if self._state.get(name, 0) > self._counter(name):
+                        self._bump(name, self._state[name] - self._counter(name))
+            self._pass_will()
+            self._state = {"seq": max(self._state.get("seq", 0), self._counter("seq")),
+                           "bd_seq": self._counter("bd_seq"),
+                           "corrupt_alarm": self._state.get("corrupt_alarm", 0)}
+
+    def corrupt_alarm_change(self) -> str | None:
+        """"raised" when a corrupt outbox was just moved aside, "cleared" at the first start
+        after the alarm was raised that finds no moved-aside copy left, else None."""
+        if self.moved_aside is not None:
+            change, flag = "raised", 1
+        elif self._state["corrupt_alarm"] and not list(
+            self.path.parent.glob(self.path.name + ".corrupt-*")
+        ):
+            change, flag = "cleared", 0
+        else:
+            return None
+        with self._lock:
+            self._state["corrupt_alarm"] = flag
+            self._write_state()
+        return change
 
     @contextmanager
     def _tx(self) -> Iterator[None]:
@@ -113,16 +235,60 @@ class Outbox:
         with self._lock:
             return self._counter(name)
 
+    def _next_seq(self) -> int:
+        """The next `seq`; past the state file's reservation, reserve the next block first."""
+        seq = self._bump("seq")
+        if seq > self._state["seq"]:
+            self._state["seq"] = seq + SEQ_RESERVE
+            self._write_state()
+        return seq
+
+    def will_seq(self) -> int:
+        """The `seq` of the next session's Last Will: WILL_SEQ_HEADROOM above the current one,
+        so the `offline` status sorts after everything the session sends. Attempts that never
+        connected leave it armed, so it is reused while there is room below it."""
+        with self._tx():
+            seq, will = self._counter("seq"), self._counter("will_seq")
+            if will - seq < WILL_SEQ_HEADROOM // 2:
+                self._bump("will_seq", seq + WILL_SEQ_HEADROOM - will)
+                will = seq + WILL_SEQ_HEADROOM
+                if will > self._state["seq"]:  # a lost database must continue above it too
+                    self._state["seq"] = will
+                    self._write_state()
+            return will
+
+    def _pass_will(self) -> None:
+        gap = self._counter("will_seq") - self._counter("seq")
+        if gap > 0:
+            self._bump("seq", gap)
+
+    def pass_will(self) -> None:
+        """A session ended and the broker may have published its Last Will: what follows
+        must sort after it."""
+        with self._tx():
+            self._pass_will()
+
+    def disarm_will(self) -> None:
+        """A clean shutdown said `stopped`: no Last Will was sent, the next start need not
+        skip over it."""
+        with self._tx():
+            self._db.execute("DELETE FROM counters WHERE name = 'will_seq'")
+
+    @property
+    def last_seq(self) -> int:
+        return self.counter("seq")
+
     def next_envelope(self) -> Envelope:
         """A fresh envelope for a message that is sent directly (session state, not queued)."""
         with self._tx():
-            return Envelope.new(self._bump("seq"))
+            return Envelope.new(self._next_seq())
 
     def next_bd_seq(self) -> int:
         """Sparkplug bdSeq for the next MQTT session, 0..255, persisted before it is used."""
         with self._tx():
-            self._bump("bd_seq")
-            return (self._counter("bd_seq") - 1) % 256
+            self._state["bd_seq"] = self._bump("bd_seq")
+            self._write_state()
+            return (self._state["bd_seq"] - 1) % 256
 
     # ------------------------------------------------------------ queue
 
@@ -141,7 +307,7 @@ class Outbox:
         """Commit one message; `build` turns the envelope (seq taken in the same transaction)
         into the payload. `latest` drops older pending rows of the same topic."""
         with self._tx():
-            env = Envelope.new(self._bump("seq")) if with_envelope else None
+            env = Envelope.new(self._next_seq()) if with_envelope else None
             payload = build(env)
             if latest:
                 self._db.execute(
@@ -201,17 +367,21 @@ class Outbox:
         if kinds is not None:
             where += f" AND kind IN ({', '.join('?' * len(kinds))})"
             args.extend(kinds)
+        return self._rows(f"{where} ORDER BY id LIMIT ?", (*args, limit))
+
+    def row(self, row_id: int) -> Row | None:
+        """One pending row, if it is still there."""
+        rows = self._rows("id = ?", (row_id,))
+        return rows[0] if rows else None
+
+    def _rows(self, condition: str, args: tuple) -> list[Row]:
         with self._lock:
             rows = self._db.execute(
                 "SELECT id, topic, payload, qos, retain, kind, msg_id, seq, correlation, created "
-                f"FROM messages WHERE {where} ORDER BY id LIMIT ?",
-                (*args, limit),
+                f"FROM messages WHERE {condition}",
+                args,
             ).fetchall()
-        return [
-            Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
-                None if r[8] is None else bytes(r[8]), r[9])
-            for r in rows
-        ]
+        return [_to_row(r) for r in rows]
 
     def ack(self, row_ids: list[int]) -> None:
         """The broker has these messages: forget them (one transaction)."""
@@ -223,6 +393,34 @@ class Outbox:
         with self._tx():
             self._db.execute("DELETE FROM messages WHERE id = ?", (row_id,))
             self._bump("rejected")
+
+    def dead_letter(self, row_id: int, reason: str) -> None:
+        """This row can never be published: move it to `dead_letter`, count it, keep the
+        newest DEAD_LETTER_KEEP there."""
+        with self._tx():
+            moved = self._db.execute(
+                "INSERT INTO dead_letter(id, topic, payload, qos, retain, kind, msg_id, seq,"
+                " correlation, created, reason, dead_at) SELECT id, topic, payload, qos, retain,"
+                " kind, msg_id, seq, correlation, created, ?, ? FROM messages WHERE id = ?",
+                (reason, time.time(), row_id),
+            ).rowcount
+            self._db.execute("DELETE FROM messages WHERE id = ?", (row_id,))
+            self._db.execute(
+                "DELETE FROM dead_letter WHERE id NOT IN"
+                " (SELECT id FROM dead_letter ORDER BY id DESC LIMIT ?)",
+                (DEAD_LETTER_KEEP,),
+            )
+            if moved:
+                self._bump("dead_lettered")
+
+    def dead_letters(self) -> list[tuple[Row, str]]:
+        """The dead letters kept, oldest first, with the reason of each."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT id, topic, payload, qos, retain, kind, msg_id, seq, correlation, created,"
+                " reason FROM dead_letter ORDER BY id"
+            ).fetchall()
+        return [(_to_row(r), r[10]) for r in rows]
 
     def discard_kind(self, kind: str) -> None:
         """Forget pending messages of a kind that is no longer sent (not counted as drops)."""

@@ -80,6 +80,10 @@ class OutboxState(_Model):
     pending: int = Field(ge=0, description="messages waiting for a broker acknowledgement")
     dropped: int = Field(ge=0, description="messages dropped by the outbox bounds, ever")
     rejected: int = Field(ge=0, description="messages the broker refused (e.g. ACL), ever")
+    dead_lettered: int = Field(
+        ge=0, description="messages that could never be published (e.g. over the broker's"
+        " maximum packet size), set aside in the outbox's dead_letter table, ever",
+    )
 
 
 class _Payload(_Model):
@@ -246,6 +250,12 @@ def scan_payload(env: Envelope, summary: dict) -> ScanPayload:
         piles=list(summary.get("piles", [])),
         timings={k: float(v) for k, v in (summary.get("timings") or {}).items()},
     )
+
+
+def idle_alarm(alarm_type: str) -> dict:
+    """The state body of an alarm type that is not raised (nothing raised it yet)."""
+    return {"type": alarm_type, "state": "cleared", "severity": "info", "scan_id": None,
+            "message": "not raised"}
 
 
 def alarm_payload(env: Envelope, event: dict) -> AlarmPayload:

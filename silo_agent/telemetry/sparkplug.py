@@ -105,6 +105,14 @@ class SparkplugNode:
             self.datatypes[camera_metric(serial)] = pb.String
             self.values[camera_metric(serial)] = "unknown"
 
+    def restore_alarms(self, active: Iterable[str]) -> None:
+        """Take the alarm states persisted by the last run, so that the first NBIRTH after a
+        restart says raised where the JSON topics, HA and the metrics do."""
+        raised = set(active)
+        for alarm_type in raised | set(ALARM_TYPES):
+            self.datatypes[alarm_metric(alarm_type)] = pb.Boolean
+            self.values[alarm_metric(alarm_type)] = alarm_type in raised
+
     def birth(self, bd_seq: int) -> bytes:
         """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric."""
         payload = pb.Payload(timestamp=now_ms(), seq=0)

@@ -25,9 +25,11 @@ def toml_value(value: object) -> str:
 def write_config(path: Path, port: int, workdir: Path, *, schedule: dict | None = None,
                  simulation: dict | None = None, audit: dict | None = None,
                  alarms: dict | None = None, metrics: dict | None = None,
+                 mqtt: dict | None = None,
                  cameras: tuple[tuple[str, str | None], ...] = (("sim-A2", "A2"), ("sim-A6", "A6")),
                  ) -> Path:
-    """A config for the test daemon; sections given replace the defaults here."""
+    """A config for the test daemon; sections given replace the defaults here (`mqtt` adds
+    keys, dotted for its sub-tables: `{"sparkplug.enabled": True}`)."""
     sections = {
         "schedule": schedule if schedule is not None else {"scan_at_start": True},
         "simulation": {"sequence": ["flat"], "vary_noise": True, "layout": "wall",
@@ -36,7 +38,7 @@ def write_config(path: Path, port: int, workdir: Path, *, schedule: dict | None 
                   "max_age_days": 30, **(audit or {})},
         "mqtt": {"host": "127.0.0.1", "port": port, "outbox_path": str(workdir / "outbox.sqlite"),
                  "reconnect_min_s": 0.1, "reconnect_max_s": 0.5, "keepalive_s": 5,
-                 "shutdown_timeout_s": 2.0},
+                 "shutdown_timeout_s": 2.0, **(mqtt or {})},
         "alarms": alarms or {},
         "metrics": metrics or {},
     }

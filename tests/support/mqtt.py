@@ -64,9 +64,10 @@ def mqtt_config(broker: Broker, tmp_path: Path, **overrides) -> MqttConfig:
 def telemetry_factory(tmp_path: Path) -> Iterator[Callable[..., Telemetry]]:
     made: list[Telemetry] = []
 
-    def make(broker: Broker, *, cameras=("cam-a", "cam-b"), start=True, **overrides) -> Telemetry:
+    def make(broker: Broker, *, cameras=("cam-a", "cam-b"), start=True,
+             expire_after_s: int | None = None, **overrides) -> Telemetry:
         t = Telemetry(mqtt_config(broker, tmp_path, **overrides), SILO, list(cameras),
-                      version="9.9.9")
+                      version="9.9.9", expire_after_s=expire_after_s)
         if start:
             t.start()
         made.append(t)

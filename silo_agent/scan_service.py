@@ -1,0 +1,198 @@
+"""The one scan path shared by `scan`, `process`, `replay` and the daemon.
+
+A scan carries the config snapshot it was taken with (`scan.json` key `config`, next to its
+`reconstruction` settings and `site`), and the analysis arguments are always derived from the
+scan itself (`analysis_of`), so a later `replay` processes it exactly as it was processed when
+it was published, `[calibration]` included. Every path builds its summary with `summarise`
+(the shape `telemetry.payloads.ScanPayload` validates, plus the engine's details) and keeps it
+with `keep_result`, atomically, through the audit cache.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import structlog
+from pydantic import BaseModel, ValidationError
+
+from silo_agent import __version__
+from silo_agent.audit import INPUTS, RESULT, AuditCache
+from silo_agent.config import (
+    CalibrationConfig,
+    Config,
+    ConfigError,
+    DetectionConfig,
+    ReconstructionConfig,
+    describe_validation_error,
+)
+from silo_agent.scan import MANIFEST, Scan, ScanError, Site, read_scan
+
+if TYPE_CHECKING:
+    from silo_agent.capture import CameraFailure
+    from silo_agent.detect import Pile
+    from silo_agent.reconstruct import Result
+    from silo_agent.scan import CameraCloud
+
+log = structlog.get_logger(__name__)
+
+Model = TypeVar("Model", bound=BaseModel)
+
+CONFIG_KEY = "config"  # scan.json: the config snapshot the scan was taken and processed with
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Everything `analysis.analyse` is called with besides the scan and the previous piles."""
+
+    settings: ReconstructionConfig
+    detection: DetectionConfig
+    site: Site
+    calibration: CalibrationConfig
+
+
+def new_scan_id(config: Config, started: datetime, taken: set[str]) -> str:
+    """`<silo>-<UTC yyyymmddThhmmssZ>`, suffixed when that second already has a scan."""
+    base = f"{config.silo.id}-{started:%Y%m%dT%H%M%SZ}"
+    scan_id, k = base, 1
+    while scan_id in taken:
+        scan_id, k = f"{base}-{k}", k + 1
+    return scan_id
+
+
+def new_scan(config: Config, scan_id: str, started: datetime, clouds: list[CameraCloud],
+             failures: list[CameraFailure]) -> Scan:
+    """A silo-scan/1 `Scan` of one capture, carrying the config snapshot it is processed with."""
+    from silo_agent.reconstruct import site_from_config
+
+    return Scan(
+        scan_id=scan_id, captured_at=f"{started:%Y-%m-%dT%H:%M:%SZ}", silo_id=config.silo.id,
+        site=site_from_config(config), cameras=clouds,
+        reconstruction=config.reconstruction.model_dump(mode="json"),
+        extra={"software_version": __version__, "degraded": bool(failures),
+               "failures": [{"serial": f.serial, "error": f.error} for f in failures],
+               CONFIG_KEY: config.model_dump(mode="json")},
+    )  # fmt: skip
+
+
+def analysis_of(scan: Scan) -> Analysis:
+    """The analysis arguments a scan was (or is to be) processed with: its reconstruction
+    settings and site, the detection and calibration of its config snapshot (defaults for a
+    scan without one, e.g. a simulated scan)."""
+    snapshot = scan.extra.get(CONFIG_KEY) or {}
+    manifest = f"{scan.scan_id}/{MANIFEST}"
+    settings = _validated(ReconstructionConfig, scan.reconstruction, f"{manifest}: reconstruction")
+    detection = _validated(DetectionConfig, snapshot.get("detection") or {},
+                           f"{manifest}: config.detection")  # fmt: skip
+    calibration = _validated(CalibrationConfig, snapshot.get("calibration") or {},
+                             f"{manifest}: config.calibration")  # fmt: skip
+    return Analysis(settings, detection, scan.site, calibration)
+
+
+def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ScanError(describe_validation_error(exc, source).splitlines()[0]) from None
+
+
+def overridden(analysis: Analysis, config: Config | None, grid_step_m: float | None = None,
+               method: str | None = None) -> Analysis:
+    """`process`: the scan's own analysis, then what `config` sets, then the flags (later wins)."""
+    from silo_agent.reconstruct import site_from_config
+
+    merged = analysis.settings.model_dump()
+    if config is not None:
+        merged.update(config.reconstruction.model_dump(exclude_unset=True))
+        analysis = Analysis(analysis.settings, config.detection, site_from_config(config),
+                            config.calibration)  # fmt: skip
+    if grid_step_m is not None:
+        merged["grid_step_m"] = grid_step_m
+    if method is not None:
+        merged["method"] = method
+    try:
+        return replace(analysis, settings=ReconstructionConfig.model_validate(merged))
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
+
+
+def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> Result:
+    """Reconstruct and detect, as every path does it."""
+    from silo_agent.analysis import analyse
+
+    return analyse(scan, analysis.settings, analysis.detection, site=analysis.site,
+                   previous=previous, calibration=analysis.calibration)  # fmt: skip
+
+
+def summarise(result: Result, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
+    """The result as published on `P/scan` and kept as `result.json` by every path."""
+    failures = scan.extra.get("failures") or []
+    summary = result.summary()
+    summary["captured_at"] = scan.captured_at
+    summary["degraded"] = bool(failures)
+    summary["cameras"] = {"used": [c.serial for c in scan.cameras],
+                          "failed": [{"serial": f["serial"], "error": f["error"]}
+                                     for f in failures]}  # fmt: skip
+    summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
+    return summary
+
+
+def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
+    """Piles of the latest cached scan before `scan_id` with a result, so pile ids carry over;
+    none when there is no readable one. Ids are `<silo>-<UTC time>`: they sort by time."""
+    from silo_agent.detect import Pile
+
+    for entry in reversed(cache.entries()):
+        if entry.scan_id >= scan_id:
+            continue
+        try:
+            summary = json.loads((entry.path / RESULT).read_text(encoding="utf-8"))
+            return [Pile.from_json(p) for p in summary.get("piles") or []]
+        except FileNotFoundError:
+            continue
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("no pile ids carried over", scan_id=entry.scan_id, error=str(exc))
+            return []
+    return []
+
+
+def keep_result(directory: Path, summary: dict[str, Any], result: Result,
+                previous: list[Pile]) -> None:
+    """The summary, height map and processing inputs next to the scan, each written atomically."""
+    inputs = {"previous_piles": [p.to_json() for p in previous]}
+    AuditCache.add_result(directory, summary, result.heightmap, inputs)
+
+
+def process_directory(directory: Path, config: Config | None = None,
+                      grid_step_m: float | None = None,
+                      method: str | None = None) -> tuple[Scan, Result, dict[str, Any]]:
+    """`silo-agent process` of one scan directory: (scan, result, summary); nothing written.
+
+    Raises ScanError for a bad directory, ConfigError for bad settings, ModelError for a bad
+    detection model."""
+    scan = read_scan(directory)
+    analysis = overridden(analysis_of(scan), config, grid_step_m, method)
+    result = analyse_scan(scan, analysis, [])
+    return scan, result, summarise(result, scan, {})
+
+
+def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(published, replayed) results of a cached scan, processed again exactly as it was
+    processed: its own analysis arguments and the previous piles that gave pile ids."""
+    from silo_agent.detect import Pile
+
+    scan = read_scan(directory)
+    try:
+        published = json.loads((directory / RESULT).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ScanError(f"{directory / RESULT}: the scan has no published result") from None
+    try:
+        inputs = json.loads((directory / INPUTS).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        inputs = {}
+    previous = [Pile.from_json(p) for p in inputs.get("previous_piles") or []]
+    result = analyse_scan(scan, analysis_of(scan), previous)
+    return published, summarise(result, scan, {})
