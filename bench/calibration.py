@@ -38,7 +38,6 @@ from benchlib import header
 from scipy.spatial.transform import Rotation
 
 from silo_agent.calibrate import (
-    DriftMonitor,
     calibrate,
     fit_plane,
     floor_points,
@@ -46,6 +45,7 @@ from silo_agent.calibrate import (
     with_extrinsics,
 )
 from silo_agent.config import CalibrationConfig, ReconstructionConfig, SpacingConfig
+from silo_agent.drift import DriftMonitor
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan
 from silo_agent.sim.layouts import axis_angle, view_pose

@@ -2,7 +2,7 @@
 
     python bench/mqtt.py [--messages 10000] [--out bench/results/mqtt.md]
 
-Runs its own mosquitto on a free loopback port (tests/mqtt_broker.py), never 1883.
+Runs its own mosquitto on a free loopback port (bench/mosquitto.py), never 1883.
 1. Replay: N scan results are queued while the broker is unreachable, then the broker starts;
    measured: time until the subscriber has all N (messages/s) and the outbox is empty.
 2. Added latency: the outbox commit (SQLite WAL, synchronous=FULL) per message, and the
@@ -24,11 +24,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT))
 
 import paho.mqtt.client as mqtt  # noqa: E402
-from mqtt_broker import Broker  # noqa: E402
+from mosquitto import Broker  # noqa: E402
 from paho.mqtt.enums import CallbackAPIVersion  # noqa: E402
 
 from silo_agent.config import MqttConfig  # noqa: E402
@@ -90,7 +89,7 @@ def config(port: int, outbox: Path, **extra) -> MqttConfig:
 def bench_replay(work: Path, n: int, max_inflight: int, subscriber: bool) -> dict:
     """The subscriber is mosquitto_sub in its own process, so it does not share our GIL."""
     name = f"{max_inflight}-{subscriber}"
-    broker = Broker(work / f"broker-replay-{name}", extra=BROKER_TUNING, persistence=False)
+    broker = Broker(work / f"broker-replay-{name}", extra=BROKER_TUNING)
     tel = Telemetry(config(broker.port, work / f"replay-{name}.sqlite",
                            max_inflight=max_inflight), SILO, [])
     for k in range(n):
@@ -126,7 +125,7 @@ def bench_replay(work: Path, n: int, max_inflight: int, subscriber: bool) -> dic
 
 
 def bench_latency(work: Path, samples: int) -> dict:
-    broker = Broker(work / "broker-latency", extra=BROKER_TUNING, persistence=False).start()
+    broker = Broker(work / "broker-latency", extra=BROKER_TUNING).start()
     counter = Counter(broker, f"{BASE}/scan")
     tel = Telemetry(config(broker.port, work / "latency.sqlite"), SILO, [])
     tel.start()

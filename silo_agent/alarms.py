@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from silo_agent.config import AlarmsConfig, CalibrationConfig
+from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry.payloads import ALARM_TYPES
 
@@ -39,7 +39,7 @@ class Inputs:
     volume_m3: float | None
     coverage: float
     valid: bool
-    floor_z: float = 0.0
+    floor_z: float = SiloConfig.model_fields["floor_z"].default
     ceiling_z: float | None = None
     max_z: float | None = None  # highest point of the reconstructed surface (silo frame)
     failed_cameras: tuple[tuple[str, str], ...] = ()  # (serial, error)
@@ -73,7 +73,7 @@ class AlarmState:
     active: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # type -> raised event
     baseline_scan_id: str | None = None
     last_volume_m3: float | None = None
-    drift: Mapping[str, Any] = field(default_factory=dict)  # calibrate.DriftState.to_json()
+    drift: Mapping[str, Any] = field(default_factory=dict)  # drift.DriftState.to_json()
 
     def to_json(self) -> dict[str, Any]:
         return {"active": {k: dict(v) for k, v in self.active.items()},
@@ -310,7 +310,7 @@ def evaluate(
     """Events (`raised` / `cleared`, only on a change) and the state for the next scan.
 
     With `calibration`, the `calibration` alarm follows the calibration_drift detector
-    (silo_agent.calibrate.drift_step, whose run lengths the state carries): raised while any
+    (silo_agent.drift.drift_step, whose run lengths the state carries): raised while any
     camera pair's height disagreement or camera's IMU tilt is drifted, cleared when none is.
     """
     detectors = DETECTORS if detectors is None else detectors
@@ -350,9 +350,9 @@ def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
                        previous: Mapping[str, Any], active: dict[str, Mapping[str, Any]],
                        events: list[dict[str, Any]]) -> dict[str, Any]:  # fmt: skip
     """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
-    from silo_agent.calibrate import DriftState, drift_step
+    from silo_agent.drift import DEFAULT_GRAVITY_TOLERANCE_DEG, DriftState, drift_step
 
-    tolerances = inputs.gravity_tolerance_deg or 3.0
+    tolerances = inputs.gravity_tolerance_deg or DEFAULT_GRAVITY_TOLERANCE_DEG
     state, changes = drift_step(DriftState.from_json(previous), inputs.registration_residual_m,
                                 inputs.gravity_deg, calibration, tolerances)
     was = "calibration" in active

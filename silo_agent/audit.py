@@ -18,7 +18,6 @@ import errno
 import hashlib
 import io
 import json
-import os
 import re
 import shutil
 import tarfile
@@ -33,6 +32,7 @@ import numpy as np
 import structlog
 
 from silo_agent import __version__
+from silo_agent.atomic import publish_directory, write_atomic
 from silo_agent.config import AuditConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.scan import MANIFEST, Scan, ScanError, manifest_of, write_ply
@@ -51,29 +51,6 @@ def sha256_of(path: Path) -> str:
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
-
-
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write a file so that it is either absent or complete, even across a power cut."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def dump_json(data: Any) -> bytes:
@@ -134,14 +111,10 @@ class AuditCache:
             manifest["config"] = config_snapshot
             manifest["config_sha256"] = hashlib.sha256(config_text.encode()).hexdigest()
             (staging / MANIFEST).write_bytes(dump_json(manifest))
-            for item in staging.iterdir():
-                with open(item, "rb") as handle:
-                    os.fsync(handle.fileno())
-            os.rename(staging, target)
-            _fsync_dir(self.directory)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
+        publish_directory(staging, target)
         return target
 
     @staticmethod

@@ -15,6 +15,14 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from silo_agent.choices import (
+    DEFAULT_GRAIN,
+    DEFAULT_GRID_STEP_M,
+    DEFAULT_METHOD,
+    GRAINS,
+    LAYOUTS,
+    METHODS,
+)
 from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.exits import DATA_ERROR as EX_DATAERR
 from silo_agent.exits import FAILURE, INTERRUPTED, OK, USAGE
@@ -346,7 +354,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
           f"{points} points, truth {scene.volume_m3:.4f} m³")
     if args.record is not None:
-        from silo_agent.sim.record import record_views
+        from silo_agent.capture.sim_recording import record_views
 
         views = plan_views(scene, args.views, args.seed, args.calib_error, args.layout)
         for path in record_views(rig, views, args.seed, args.record, args.record_frames,
@@ -511,8 +519,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
     p.add_argument("--grid-step", type=float, metavar="METRES")
     p.add_argument(
-        "--method", choices=["bicm", "rectangle", "alpha", "poisson", "hull"],
-        help="reconstruction method (baselines for comparison); default bicm",
+        "--method", choices=METHODS,
+        help=f"reconstruction method (baselines for comparison); default {DEFAULT_METHOD}",
     )
     p.add_argument("--json", action="store_true",
                    help="one JSON object per scan, one per line, with its scan_dir")
@@ -563,10 +571,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--calib-error", type=_calib_error, default=(0.0, 0.0), metavar="DEG,M",
                    help="true poses off the written extrinsics by DEG degrees and M metres")
-    p.add_argument("--grid-step", type=float, default=0.02, metavar="M",
+    p.add_argument("--grid-step", type=float, metavar="M",
+                   default=DEFAULT_GRID_STEP_M,
                    help="grid step written into the scan's reconstruction settings")
-    p.add_argument("--grain", default="wheat", choices=["wheat", "corn", "soybeans", "rice"])
-    p.add_argument("--layout", choices=["paper", "wall"],
+    p.add_argument("--grain", default=DEFAULT_GRAIN, choices=GRAINS)
+    p.add_argument("--layout", choices=LAYOUTS,
                    help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)")
     p.add_argument("--color", action="store_true", help="colour the points (normal shading)")
     p.add_argument("--record", type=Path, metavar="DIR",

@@ -28,7 +28,16 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from silo_agent.exits import CONFIG_ERROR
+from silo_agent.choices import (
+    DEFAULT_GRAIN,
+    DEFAULT_GRID_STEP_M,
+    DEFAULT_LAYOUT,
+    DEFAULT_METHOD,
+    VIEW_NAMES,
+    Grain,
+    Layout,
+    Method,
+)
 from silo_agent.geometry import (
     check_polygon,
     grid_shape,
@@ -37,7 +46,6 @@ from silo_agent.geometry import (
 )
 from silo_agent.limits import MAX_DURATION_S, MAX_GRID_CELLS
 
-EX_CONFIG = CONFIG_ERROR  # the name callers of load_config know it by
 SAFE_ID = r"^[A-Za-z0-9_-]+$"
 
 
@@ -103,8 +111,8 @@ class SiloConfig(Strict):
 class ReconstructionConfig(Strict):
     """BICM settings (paper 2.3-2.4). `None` means: adapt to the data (see reconstruct.cells)."""
 
-    method: Literal["bicm", "rectangle", "alpha", "poisson", "hull"] = "bicm"
-    grid_step_m: float = Field(default=0.02, gt=0.001, le=1.0)
+    method: Method = DEFAULT_METHOD
+    grid_step_m: float = Field(default=DEFAULT_GRID_STEP_M, gt=0.001, le=1.0)
     voxel_size_m: float | None = Field(
         default=None, gt=0, description="paper 2.3.3 voxel down-sampling; default off"
     )
@@ -217,10 +225,8 @@ class CameraConfig(Strict):
     @field_validator("view")
     @classmethod
     def _known_view(cls, view: str | None) -> str | None:
-        from silo_agent.sim.layouts import VIEWS
-
-        if view is not None and view not in VIEWS:
-            raise ValueError(f"unknown view {view!r}, expected one of {', '.join(VIEWS)}")
+        if view is not None and view not in VIEW_NAMES:
+            raise ValueError(f"unknown view {view!r}, expected one of {', '.join(VIEW_NAMES)}")
         return view
 
     @model_validator(mode="after")
@@ -266,9 +272,9 @@ class SimulationConfig(Strict):
         default=0.0, ge=0, le=600,
         description="seconds each camera's capture takes (a D455's warm-up and frames: ~1.5 s)",
     )
-    grain: Literal["wheat", "corn", "soybeans", "rice"] = "wheat"
+    grain: Grain = DEFAULT_GRAIN
     seed: int = 0
-    layout: Literal["paper", "wall"] = "paper"
+    layout: Layout = DEFAULT_LAYOUT
     calib_error_deg: float = Field(default=0.0, ge=0)
     calib_error_m: float = Field(default=0.0, ge=0)
 

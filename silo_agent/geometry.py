@@ -194,3 +194,11 @@ def cell_fractions(
         sy = cy[:, None] + oy.ravel()[None, :]
         fraction[band] = points_in_polygon(sx, sy, polygon).mean(axis=1)
     return fraction
+
+
+def points_outside(points: np.ndarray, discs: Sequence[tuple[float, float, float]]) -> np.ndarray:
+    """Mask of the (N, 3) silo-frame points outside every (x, y, radius) disc."""
+    keep = np.ones(len(points), dtype=bool)
+    for x, y, radius in discs:
+        keep &= np.hypot(points[:, 0] - x, points[:, 1] - y) > radius
+    return keep

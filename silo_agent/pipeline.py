@@ -19,10 +19,11 @@ from typing import TYPE_CHECKING, Any
 import structlog
 
 from silo_agent.alarms import AlarmState, Inputs, clear_switched_off, evaluate
-from silo_agent.audit import AuditCache, dump_json, is_disk_full, write_atomic
-from silo_agent.calibrate import gravity_angles
+from silo_agent.atomic import write_atomic
+from silo_agent.audit import AuditCache, dump_json, is_disk_full
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
+from silo_agent.drift import gravity_angles
 from silo_agent.metrics import Metrics
 from silo_agent.reconstruct import Result
 from silo_agent.scan import Scan, ScanError

@@ -20,6 +20,7 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from silo_agent.atomic import publish_directory
 from silo_agent.config import describe_validation_error
 from silo_agent.geometry import check_polygon, rigid_transform_problem
 from silo_agent.limits import (
@@ -415,7 +416,7 @@ def manifest_of(scan: Scan) -> dict[str, Any]:
 
 
 def write_scan(scan: Scan, directory: str | Path) -> Path:
-    """Write `scan` as a new silo-scan/1 directory, atomically (temp dir, fsync, rename)."""
+    """Write `scan` as a new silo-scan/1 directory, atomically (staging, fsync, rename, fsync)."""
     directory = Path(directory)
     if directory.exists():
         raise ScanError(f"{directory}: already exists; scans are never overwritten")
@@ -425,16 +426,8 @@ def write_scan(scan: Scan, directory: str | Path) -> Path:
         for camera in scan.cameras:
             write_ply(staging / f"{camera.serial}.ply", camera.points, camera.colors)
         (staging / MANIFEST).write_text(json.dumps(manifest_of(scan), indent=2) + "\n")
-        for item in staging.iterdir():
-            with open(item, "rb") as handle:
-                os.fsync(handle.fileno())
-        os.rename(staging, directory)
-        dir_fd = os.open(directory.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    publish_directory(staging, directory)
     return directory

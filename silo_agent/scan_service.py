@@ -45,7 +45,7 @@ CONFIG_KEY = "config"  # scan.json: the config snapshot the scan was taken and p
 
 @dataclass(frozen=True)
 class Analysis:
-    """Everything `detect.analyse` is called with besides the scan and the previous piles."""
+    """Everything `analysis.analyse` is called with besides the scan and the previous piles."""
 
     settings: ReconstructionConfig
     detection: DetectionConfig
@@ -121,7 +121,7 @@ def overridden(analysis: Analysis, config: Config | None, grid_step_m: float | N
 
 def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> Result:
     """Reconstruct and detect, as every path does it."""
-    from silo_agent.detect import analyse
+    from silo_agent.analysis import analyse
 
     return analyse(scan, analysis.settings, analysis.detection, site=analysis.site,
                    previous=previous, calibration=analysis.calibration)  # fmt: skip

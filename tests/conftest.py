@@ -1,21 +1,21 @@
 """Shared fixtures: synthetic scans with analytic truth, written as silo-scan/1 directories;
-a private mosquitto per test (never 1883) with Telemetry instances and subscribers on it."""
+a private mosquitto per test (never 1883) with Telemetry instances and subscribers on it.
+
+Markers (pyproject.toml): `broker` on every test that uses the `broker` fixture (added here) or
+starts its own mosquitto, `realsense` on the modules that need pyrealsense2 (skipped where it
+is not installed), `slow` on the tests that take tens of seconds; `-m "not slow"` leaves them
+out."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from mqtt_support import broker, collector_factory, telemetry_factory  # noqa: F401
-from synthetic import cone, observe, ring_views
-
 from silo_agent.scan import Scan, write_scan
+from tests.support.mqtt import broker, collector_factory, telemetry_factory  # noqa: F401
+from tests.support.synthetic import cone, observe, ring_views
 
 
 @pytest.fixture(scope="session")
@@ -38,9 +38,7 @@ def scan_dir(tmp_path: Path, cone_scan_4: Scan) -> Path:
     return write_scan(cone_scan_4, tmp_path / "scan")
 
 
-def run_cli(*args: str, check: bool = False) -> subprocess.CompletedProcess:
-    """The real `silo-agent` entry point in a subprocess."""
-    return subprocess.run(
-        [sys.executable, "-m", "silo_agent", *args],
-        capture_output=True, text=True, check=check, timeout=120,
-    )  # fmt: skip
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if "broker" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.broker)

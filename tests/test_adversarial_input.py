@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from agent_support import BASE, Daemon, write_config
-from conftest import run_cli
-from mqtt_support import validate_json
 from structlog.testing import capture_logs
 
 from silo_agent.audit import AuditCache
 from silo_agent.config import AuditConfig
+from tests.support.agent import BASE, Daemon, write_config
+from tests.support.cli import run_cli
+from tests.support.mqtt import validate_json
 
 EX_DATAERR, EX_CONFIG = 65, 78  # sysexits.h, written out: not read from the code under test
 CLOUD_POINT_LIMIT = 10_000_000  # documented in docs/limits.md

@@ -9,14 +9,14 @@ import sqlite3
 import time
 
 import pytest
-from mqtt_broker import Broker
-from mqtt_support import BASE, SILO, mqtt_config, realistic_heightmap, summary, validate_json
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from structlog.testing import capture_logs
 
 from silo_agent.telemetry.mqtt import POISON_STRIKES, Telemetry, reply_topic_problem
 from silo_agent.telemetry.outbox import Outbox
+from tests.support.mqtt import BASE, SILO, mqtt_config, realistic_heightmap, summary, validate_json
+from tests.support.mqtt_broker import Broker
 
 FALLBACK = f"{BASE}/cmd/scan/reply"
 
@@ -130,6 +130,7 @@ def test_dead_letters_survive_a_restart_and_are_bounded(tmp_path, monkeypatch):
     assert again.counter("dead_lettered") == 5
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_oversize_message_is_dead_lettered_not_retried(tmp_path, telemetry_factory,
                                                        collector_factory):
     broker = Broker(tmp_path / "small-broker", extra=("max_packet_size 20000",)).start()
@@ -153,6 +154,7 @@ def test_oversize_message_is_dead_lettered_not_retried(tmp_path, telemetry_facto
         broker.stop()
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_message_the_broker_drops_the_connection_over_is_dead_lettered(
     tmp_path, telemetry_factory, collector_factory
 ):

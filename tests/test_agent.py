@@ -17,11 +17,12 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
-from agent_support import BASE, Daemon, NotifySocket, write_config
-from mqtt_broker import free_port
-from mqtt_support import validate_json
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
+
+from tests.support.agent import BASE, Daemon, NotifySocket, write_config
+from tests.support.mqtt import validate_json
+from tests.support.mqtt_broker import free_port
 
 REPLIES = "test/replies"
 counter = itertools.count()
@@ -61,6 +62,7 @@ def idle(agent: Daemon, timeout: float = 30) -> None:
     raise AssertionError("the agent stayed busy")
 
 
+@pytest.mark.slow
 def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     notify = NotifySocket(tmp_path / "notify.sock")
@@ -156,6 +158,7 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
     assert max(gaps) < 1.8
 
 
+@pytest.mark.slow
 def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
@@ -199,6 +202,7 @@ def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
         agent.kill()
 
 
+@pytest.mark.slow
 def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     sequence = ["flat", "flat", "crater", "crater", "flat", "flat"]
@@ -271,6 +275,7 @@ def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
     assert exported.returncode == 0 and out.stat().st_size > 100_000
 
 
+@pytest.mark.slow
 def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
@@ -312,6 +317,7 @@ def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
                  == "stopped")  # fmt: skip
 
 
+@pytest.mark.slow
 def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     col = collector_factory(broker, [f"{BASE}/#"])
@@ -354,6 +360,7 @@ def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
     assert len(col.on(f"{BASE}/alarm")) == 1  # camera still raised; no coverage alarm on top
 
 
+@pytest.mark.slow
 def test_full_disk_publishes_uncached_with_a_cache_alarm(
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     disk = tmp_path / "disk"

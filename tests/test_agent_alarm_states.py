@@ -11,12 +11,13 @@ import urllib.request
 from pathlib import Path
 
 import pysparkplug as ps
-from agent_support import BASE, SILO, Daemon, write_config
-from mqtt_broker import free_port
-from mqtt_support import validate_json
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from silo_agent.telemetry.payloads import ALARM_TYPES
+from tests.support.agent import BASE, SILO, Daemon, write_config
+from tests.support.mqtt import validate_json
+from tests.support.mqtt_broker import free_port
 
 NODE = f"spBv1.0/silos/{{}}/{SILO}"
 LOW = 100.0  # m³: the simulated flat bay holds ~43 m³, so level_low is raised at once
@@ -59,6 +60,7 @@ def retained_alarm_states(broker, collector_factory, client_id: str) -> dict[str
             for m in fresh.messages if m.retain}  # fmt: skip
 
 
+@pytest.mark.slow
 def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_a_switched_off_detector_clears(  # noqa: E501
         tmp_path: Path, broker, collector_factory):  # fmt: skip
     port = free_port()

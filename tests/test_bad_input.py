@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli
+
+from tests.support.cli import run_cli
 
 MANIFEST = "scan.json"
 

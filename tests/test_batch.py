@@ -11,11 +11,11 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import run_cli
 
 from silo_agent.config import ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan, write_scan
+from tests.support.cli import run_cli
 
 STEP = "0.05"  # coarse: these tests are about the batch, not the surface
 

@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_support import render
-from conftest import run_cli
 
 from silo_agent.calibrate import CalibrationError, rewrite_config_text, write_calibrated_config
-from silo_agent.config import EX_CONFIG, load_config, parse_config
+from silo_agent.config import load_config, parse_config
+from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.geometry import transform_from_euler
 from silo_agent.scan import write_scan
+from tests.support.calib import render
+from tests.support.cli import run_cli
 
 CONFIG = """\
 # site config -- keep this comment
@@ -132,6 +133,7 @@ def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: P
     assert "calibration.drift_consecutive" in done.stderr
 
 
+@pytest.mark.slow
 def test_cli_calibrate_capture_with_sim_cameras(tmp_path: Path) -> None:
     config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
     config.write_text(config.read_text() + f"""

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from calib_support import knocked, render, rig
 
-from silo_agent.calibrate import DriftMonitor, DriftState, drift_step, gravity_angles
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
+from silo_agent.drift import DriftMonitor, DriftState, drift_step, gravity_angles
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import CameraCloud
 from silo_agent.sim.layouts import look_at, view_pose
+from tests.support.calib import knocked, render, rig
 
 SETTINGS = CalibrationConfig(drift_threshold_m=0.005, drift_consecutive=3)
 
@@ -50,6 +50,7 @@ def test_fires_for_a_camera_turned_by_one_degree(axis: str) -> None:
     assert raised_at == [(2, "residual:sim-A1|sim-A3")]
 
 
+@pytest.mark.slow
 def test_quiet_on_repeated_scans_of_an_unchanged_scene() -> None:
     monitor = DriftMonitor(SETTINGS, gravity_tolerance_deg=0.5)
     for seed in range(5):

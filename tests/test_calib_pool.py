@@ -10,8 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_support import render_repeats, rig
-from conftest import run_cli
 from scipy.spatial import cKDTree
 
 from silo_agent.calibrate import ScanMismatch, calibrate, pool_scans
@@ -19,6 +17,8 @@ from silo_agent.config import CalibrationConfig, load_config
 from silo_agent.reconstruct import site_from_config
 from silo_agent.scan import read_scan, write_scan
 from silo_agent.sim.layouts import perturb, view_pose
+from tests.support.calib import render_repeats, rig
+from tests.support.cli import run_cli
 
 VIEWS = ["A1", "A3"]
 
@@ -37,6 +37,7 @@ def _rays(points: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
+@pytest.mark.slow
 def test_pooled_scans_average_each_pixel(repeats) -> None:
     """A pixel seen in both scans gives the midpoint of its two points; one seen in a single
     scan (a dropout in the other) keeps its point; no pixel appears twice."""
@@ -125,6 +126,7 @@ def _config(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_cli_pools_repeated_scans_and_refuses_a_mismatch(tmp_path: Path, repeats) -> None:
     dirs = [write_scan(s, tmp_path / f"scan{k}") for k, s in enumerate(repeats)]
     config = _config(tmp_path)
@@ -152,6 +154,7 @@ def test_cli_pools_repeated_scans_and_refuses_a_mismatch(tmp_path: Path, repeats
     assert done.returncode == 2 and "--captures goes with --capture" in done.stderr
 
 
+@pytest.mark.slow
 def test_cli_takes_several_captures_in_a_row(tmp_path: Path) -> None:
     config = _config(tmp_path)
     done = run_cli("calibrate", "--config", str(config), "--capture", "--captures", "2",

@@ -6,7 +6,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from calib_support import knocked, render, rig
 
 from silo_agent.calibrate import (
     CalibrationError,
@@ -21,6 +20,7 @@ from silo_agent.reconstruct import reconstruct
 from silo_agent.sim.layouts import perturb, view_pose
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
+from tests.support.calib import knocked, render, rig
 
 VIEWS = ["A1", "A3"]
 
@@ -118,6 +118,7 @@ def test_a_correction_beyond_the_bound_is_refused(perturbed) -> None:
         calibrate(scan, CalibrationConfig(max_correction_deg=0.1), floor=True)
 
 
+@pytest.mark.slow
 def test_per_scan_refinement_is_bounded() -> None:
     nominal = view_pose(rig().scene, "A3")
     settings = CalibrationConfig(refine=True)

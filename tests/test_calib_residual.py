@@ -6,12 +6,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from calib_support import render
 
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.grid import Grid, fuse_and_crop
 from silo_agent.reconstruct.residual import registration_residuals
+from tests.support.calib import render
 
 
 @pytest.fixture(scope="module")

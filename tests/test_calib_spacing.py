@@ -9,8 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_support import render, rig
-from conftest import run_cli
 
 from silo_agent.calibrate import CalibrationError, calibrate, write_calibrated_config
 from silo_agent.config import (
@@ -23,6 +21,8 @@ from silo_agent.config import (
 )
 from silo_agent.scan import write_scan
 from silo_agent.sim.layouts import view_pose
+from tests.support.calib import render, rig
+from tests.support.cli import run_cli
 
 
 def _dilated(views: list[str], outward_m: float, seed: int):
@@ -149,6 +149,7 @@ def test_calibrate_write_keeps_the_spacing_entries(tmp_path: Path) -> None:
                                                                  "c").calibration.spacing
 
 
+@pytest.mark.slow
 def test_cli_reports_each_spacing_before_and_after(tmp_path: Path) -> None:
     scan, truth = _dilated(["A1", "A5"], 0.005, seed=4)
     directory = write_scan(scan, tmp_path / "scan")

@@ -10,8 +10,10 @@ import sys
 import numpy as np
 import pytest
 
+from silo_agent.analysis import analyse
 from silo_agent.config import DetectionConfig, ReconstructionConfig
-from silo_agent.detect import Pile, analyse, match_ids, points_outside
+from silo_agent.detect import Pile, match_ids
+from silo_agent.geometry import points_outside
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan, write_scan
 from silo_agent.sim import make_scene, simulate

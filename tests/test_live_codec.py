@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from mqtt_support import realistic_heightmap
 
 from silo_agent.telemetry.heightmap_codec import (
     HeightMapFormatError,
@@ -14,6 +13,7 @@ from silo_agent.telemetry.heightmap_codec import (
     encode_heightmap,
     encode_live_heightmap,
 )
+from tests.support.mqtt import realistic_heightmap
 
 
 def layers(shape: tuple[int, int]) -> dict[str, np.ndarray]:

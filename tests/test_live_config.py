@@ -8,9 +8,9 @@ import pytest
 
 from silo_agent.config import ConfigError, LiveConfig, parse_config
 from silo_agent.heightmap import HeightMap
-from silo_agent.live.command import LiveRequest, parse_live_request, session_limits
 from silo_agent.live.map import DepthFrame, LiveMap
 from silo_agent.reconstruct.grid import Grid
+from silo_agent.telemetry.live_command import LiveRequest, parse_live_request, session_limits
 
 BASE = {
     "silo": {"id": "s", "region": [[0, 0], [1, 0], [1, 1]]},

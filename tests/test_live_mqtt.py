@@ -14,8 +14,6 @@ from pathlib import Path
 
 import paho.mqtt.client as mqtt
 import pytest
-from agent_support import BASE, Daemon, write_config
-from mqtt_support import validate_json
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
@@ -25,6 +23,8 @@ from silo_agent.telemetry.heightmap_codec import (
     decode_heightmap,
     decode_live_heightmap,
 )
+from tests.support.agent import BASE, Daemon, write_config
+from tests.support.mqtt import validate_json
 
 REPLIES = "test/live-replies"
 LIVE = f"{BASE}/heightmap/live"

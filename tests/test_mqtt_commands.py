@@ -8,11 +8,11 @@ import json
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mqtt_support import BASE, validate_json
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from silo_agent.telemetry.payloads import MAX_COMMAND_BYTES
+from tests.support.mqtt import BASE, validate_json
 
 REPLIES = "fuzz/replies"
 
@@ -83,6 +83,7 @@ def ask(col, raw: bytes) -> dict:
 
 @settings(max_examples=80, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
+@pytest.mark.slow
 @given(raw=requests)
 def test_fuzzed_requests_get_one_reply_each(agent, raw):
     tel, col, accepted = agent

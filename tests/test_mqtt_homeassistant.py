@@ -5,10 +5,10 @@ from __future__ import annotations
 import json
 
 import jinja2
-from mqtt_support import BASE, SILO, summary, validate_json
 
 from silo_agent.config import ScheduleConfig, stale_after_s
 from silo_agent.telemetry.payloads import ALARM_TYPES
+from tests.support.mqtt import BASE, SILO, summary, validate_json
 
 CONFIG = f"homeassistant/device/silo_agent_{SILO}/config"
 

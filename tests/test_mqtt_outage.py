@@ -11,8 +11,10 @@ import threading
 import time
 from pathlib import Path
 
-from mqtt_broker import Broker
-from mqtt_support import BASE, ROOT, SILO, summary, validate_json
+import pytest
+
+from tests.support.mqtt import BASE, ROOT, SILO, summary, validate_json
+from tests.support.mqtt_broker import Broker
 
 
 def _first_by_msg_id(payloads: list[bytes]) -> list[dict]:
@@ -94,6 +96,7 @@ def _cli(*args: str) -> subprocess.Popen:
     )
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_publisher_sigkilled_with_pending_messages(tmp_path, collector_factory):
     broker = Broker(tmp_path / "broker")  # not started yet: the agent cannot deliver
     cfg = _config(tmp_path, broker.port)

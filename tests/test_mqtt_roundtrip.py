@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from mqtt_support import BASE, realistic_heightmap, summary, validate_json
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from silo_agent.telemetry.heightmap_codec import decode_heightmap_with_ids, encode_heightmap
 from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand
+from tests.support.mqtt import BASE, realistic_heightmap, summary, validate_json
 
 
 def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):

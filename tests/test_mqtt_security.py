@@ -6,11 +6,14 @@ import dataclasses
 import json
 import time
 
-from mqtt_broker import Broker, make_tls
-from mqtt_support import BASE, SILO, summary, validate_json
+import pytest
 from structlog.testing import capture_logs
 
+from tests.support.mqtt import BASE, SILO, summary, validate_json
+from tests.support.mqtt_broker import Broker, make_tls
 
+
+@pytest.mark.broker  # starts its own mosquitto
 def test_tls_with_ca_and_encrypted_client_key(tmp_path, telemetry_factory, collector_factory):
     tls = make_tls(tmp_path / "pki", key_password="k3y-pass")
     broker = Broker(tmp_path / "broker", tls=tls).start()
@@ -29,6 +32,7 @@ def test_tls_with_ca_and_encrypted_client_key(tmp_path, telemetry_factory, colle
         broker.stop()
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_wrong_password_is_reported_and_retried_with_back_off(
     tmp_path, monkeypatch, telemetry_factory, collector_factory
 ):
@@ -59,6 +63,7 @@ def test_wrong_password_is_reported_and_retried_with_back_off(
         broker.stop()
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_acl_denial_is_logged_not_fatal(tmp_path, telemetry_factory, collector_factory):
     acl = f"""
 topic read {BASE}/#

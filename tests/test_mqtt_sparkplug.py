@@ -7,7 +7,8 @@ import socket
 import time
 
 import pysparkplug as ps
-from mqtt_support import SILO, summary
+
+from tests.support.mqtt import SILO, summary
 
 NODE = f"spBv1.0/silos/{{}}/{SILO}"
 

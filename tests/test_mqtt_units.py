@@ -10,7 +10,6 @@ import zlib
 
 import numpy as np
 import pytest
-from mqtt_support import SCHEMAS, realistic_heightmap, summary
 
 from silo_agent.config import ConfigError, MqttConfig
 from silo_agent.heightmap import HeightMap
@@ -24,6 +23,7 @@ from silo_agent.telemetry.heightmap_codec import (
 from silo_agent.telemetry.mqtt import read_secret
 from silo_agent.telemetry.outbox import Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import check_summary, json_schemas, render_schema
+from tests.support.mqtt import SCHEMAS, realistic_heightmap, summary
 
 
 def test_committed_schemas_match_the_models():
@@ -183,11 +183,11 @@ def test_mqtt_config_rejects_contradictions():
         MqttConfig(protocol="4")
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_drops_are_reported_on_status(tmp_path):
-    from mqtt_broker import Broker
-    from mqtt_support import mqtt_config
-
     from silo_agent.telemetry.mqtt import Telemetry
+    from tests.support.mqtt import mqtt_config
+    from tests.support.mqtt_broker import Broker
 
     cfg = mqtt_config(Broker(tmp_path / "b"), tmp_path, outbox_max_messages=10)
     tel = Telemetry(cfg, "silo-t", ["cam-a"])  # never started: everything stays pending
@@ -218,11 +218,11 @@ def test_the_documented_numpy_decoder_decodes_a_published_map():
     assert np.array_equal(observed, hm.observed)
 
 
+@pytest.mark.broker  # starts its own mosquitto
 def test_a_bad_result_queues_nothing_and_stale_sparkplug_rows_are_dropped(tmp_path):
-    from mqtt_broker import Broker
-    from mqtt_support import mqtt_config
-
     from silo_agent.telemetry.mqtt import Telemetry
+    from tests.support.mqtt import mqtt_config
+    from tests.support.mqtt_broker import Broker
 
     cfg = mqtt_config(Broker(tmp_path / "b"), tmp_path, sparkplug={"enabled": True})
     tel = Telemetry(cfg, "silo-t", ["cam-a"])

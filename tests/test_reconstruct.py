@@ -1,4 +1,4 @@
-"""The BICM engine against analytic truth (tests/synthetic.py), never against its own output."""
+"""The BICM engine against analytic truth (tests/support/synthetic.py), never its own output."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import run_cli
-from synthetic import Scene, cone, frustum_on_slab, look_at, observe, ring_views
 
 from silo_agent.config import ReconstructionConfig
 from silo_agent.geometry import cell_fractions, polygon_area, transform_from_euler
 from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
 from silo_agent.scan import CameraCloud, Scan, Site, write_scan
+from tests.support.cli import run_cli
+from tests.support.synthetic import Scene, cone, frustum_on_slab, look_at, observe, ring_views
 
 
 def _error(scan: Scan, truth: float, **settings) -> float:
@@ -253,6 +253,7 @@ def test_heightmap_is_explicit_and_observed_layer_kept(
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["rectangle", "hull", "alpha", "poisson"])
 def test_baselines_give_a_volume(cone_scan_4: Scan, cone_scene: Scene, method: str) -> None:
     result = reconstruct(cone_scan_4, ReconstructionConfig(grid_step_m=0.05, method=method))

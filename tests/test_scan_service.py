@@ -7,12 +7,11 @@ import json
 from pathlib import Path
 
 import pytest
-from agent_support import Daemon, write_config
-from test_capture_cli import _camera, _grain_layer, _write_config
 
 from silo_agent.audit import comparable
 from silo_agent.cli import main
 from silo_agent.telemetry.payloads import check_summary
+from tests.support.agent import Daemon, write_config
 
 REFINE = "\n[calibration]\nrefine = true\n"
 
@@ -24,11 +23,15 @@ def _replay(directory: Path, capsys: pytest.CaptureFixture) -> str:
     return out
 
 
+@pytest.mark.realsense
 @pytest.mark.parametrize("refine", [False, True], ids=["plain", "refine"])
 def test_cli_scan_replays_identical_and_keeps_the_published_shape(
         tmp_path: Path, capsys: pytest.CaptureFixture, refine: bool) -> None:  # fmt: skip
-    config = _write_config(tmp_path, _camera("CAM-A", _grain_layer(tmp_path, "CAM-A"))
-                           + _camera("CAM-B", _grain_layer(tmp_path, "CAM-B")))  # fmt: skip
+    pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed")
+    from tests.support.playback import grain_layer, playback_camera, playback_config
+
+    cameras = [playback_camera(s, grain_layer(tmp_path, s)) for s in ("CAM-A", "CAM-B")]
+    config = playback_config(tmp_path, "".join(cameras))
     if refine:
         config.write_text(config.read_text() + REFINE)
     assert main(["scan", "--config", str(config), "--json"]) == 0
@@ -51,6 +54,7 @@ def test_cli_scan_replays_identical_and_keeps_the_published_shape(
     assert comparable(processed) == comparable(kept)
 
 
+@pytest.mark.slow
 def test_daemon_scan_with_refine_replays_identical(
         tmp_path: Path, broker, capsys: pytest.CaptureFixture) -> None:  # fmt: skip
     config = write_config(tmp_path / "agent.toml", broker.port, tmp_path)

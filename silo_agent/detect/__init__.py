@@ -1,9 +1,8 @@
 """Pile detection: the geometric detector on the height map, and a site's YOLO model (ONNX).
 
-`analyse` is what `process`, `scan` and the daemon call: YOLO first when a model is configured
-(its robot boxes are cut out of the cloud before the surface is built), then the reconstruction,
-then the piles of both detectors, with ids carried over from the previous scan. onnxruntime is
-imported only when a model is configured.
+Detection works on what the reconstruction produced (it sits above `silo_agent.reconstruct`);
+`silo_agent.analysis.analyse` runs the two in order. onnxruntime is imported only when a model
+is configured.
 """
 
 from __future__ import annotations
@@ -14,23 +13,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
-from silo_agent.detect.geometric import EDGE_M, Surface, detect_piles, grid_of
+from silo_agent.detect.geometric import EDGE_M, Surface, grid_of
 from silo_agent.detect.piles import ModelError, Pile, match_ids
-from silo_agent.scan import CameraCloud, Scan, Site
+from silo_agent.scan import CameraCloud
 
 if TYPE_CHECKING:
     from silo_agent.detect.onnx_yolo import Located
-    from silo_agent.reconstruct import Result
 
 __all__ = [
     "ModelError",
     "Pile",
     "Robot",
-    "analyse",
+    "fused_points",
     "match_ids",
     "onnx_piles",
-    "points_outside",
     "robots_of",
 ]
 
@@ -53,14 +49,6 @@ class Robot:
     @property
     def disc(self) -> tuple[float, float, float]:
         return (self.x, self.y, self.radius_m)
-
-
-def points_outside(points: np.ndarray, discs: Sequence[tuple[float, float, float]]) -> np.ndarray:
-    """Mask of the (N, 3) silo-frame points outside every (x, y, radius) disc."""
-    keep = np.ones(len(points), dtype=bool)
-    for x, y, radius in discs:
-        keep &= np.hypot(points[:, 0] - x, points[:, 1] - y) > radius
-    return keep
 
 
 def robots_of(found: Sequence[Located], robot_classes: Sequence[str]) -> list[Robot]:
@@ -104,56 +92,3 @@ def onnx_piles(
         if np.any(cells):
             piles.append(surface.pile(cells, "onnx", f.box.score))
     return piles
-
-
-def analyse(
-    scan: Scan,
-    settings: ReconstructionConfig,
-    detection: DetectionConfig,
-    site: Site | None = None,
-    previous: Sequence[Pile] = (),
-    calibration: CalibrationConfig | None = None,
-) -> Result:
-    """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
-
-    `calibration` sets how the registration residual is measured; with `refine` on, a bounded
-    registration of the overlaps adjusts the scan's extrinsics first (silo_agent.calibrate).
-    """
-    from silo_agent.reconstruct import reconstruct
-    from silo_agent.reconstruct.volume import base_surface
-
-    site = site or scan.site
-    found: list[Located] = []
-    robots: list[Robot] = []
-    onnx = detection.onnx
-    if onnx is not None:
-        from silo_agent.detect.onnx_yolo import YoloModel, locate
-
-        found = locate(YoloModel(onnx.model), scan.cameras, onnx.confidence, onnx.iou)
-        robots = robots_of(found, onnx.robot_classes)
-    notes: list[str] = []
-    if calibration is not None and calibration.refine:
-        from silo_agent.calibrate import refine
-
-        scan, notes = refine(scan, calibration, site)
-    result = reconstruct(scan, settings, site, exclude=[r.disc for r in robots],
-                         calibration=calibration)
-    if calibration is not None and calibration.refine:
-        result.parameters["refined"] = not notes
-        result.parameters["refine_notes"] = notes
-    result.robots = robots if onnx is not None else None
-    if result.heightmap is None:
-        result.piles = []
-        return result
-    hm = result.heightmap
-    base = base_surface(grid_of(hm), hm.heights.astype(float), site.base, site.floor_z)
-    surface = Surface.of(hm, base, site.floor_z, detection.background_m)
-    piles: list[Pile] = []
-    if detection.geometric:
-        piles += detect_piles(surface, detection)
-    if onnx is not None:
-        cloud = fused_points(scan.cameras)
-        cloud = cloud[points_outside(cloud, [r.disc for r in robots])]
-        piles += onnx_piles(found, onnx.pile_classes, cloud, surface, onnx.cluster_radius_m)
-    result.piles = match_ids(previous, piles, detection.match_distance_m)
-    return result

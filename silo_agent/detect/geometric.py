@@ -27,10 +27,9 @@ from scipy import ndimage
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
 from silo_agent.heightmap import HeightMap
-from silo_agent.reconstruct import DENOISE_SCALE_M
 from silo_agent.reconstruct.grid import Grid
 from silo_agent.reconstruct.smooth import masked_smooth
-from silo_agent.reconstruct.volume import denoised_columns
+from silo_agent.reconstruct.volume import DENOISE_SCALE_M, denoised_columns
 
 __all__ = ["Surface", "detect_piles", "grid_of", "relief"]
 

@@ -15,6 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
+from silo_agent.geometry import points_outside
 from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
@@ -22,6 +23,7 @@ from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid, fuse_and_
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.reconstruct.smooth import masked_smooth
 from silo_agent.reconstruct.volume import (
+    DENOISE_SCALE_M,
     Levels,
     base_plane,
     base_surface,
@@ -37,7 +39,6 @@ if TYPE_CHECKING:
 
 __all__ = ["Result", "reconstruct", "site_from_config"]
 
-DENOISE_SCALE_M = 0.20  # smoothing under the base clip (volume.counted_heights)
 EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted_cells)
 EDGE_DENSITY_RATIO = 0.5
 SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spikes)
@@ -195,8 +196,6 @@ def _without_spikes(
 
 def _excluding(fused: FusedCloud, discs: Sequence[tuple[float, float, float]]) -> FusedCloud:
     """`fused` without the points inside any of the (x, y, radius) discs."""
-    from silo_agent.detect import points_outside
-
     keep = points_outside(fused.points, discs)
     points, camera, cell = fused.points[keep], fused.camera[keep], fused.cell[keep]
     n_cams, n_cells = fused.moments.count.shape

@@ -9,6 +9,8 @@ import numpy as np
 from silo_agent.reconstruct.grid import Grid
 from silo_agent.reconstruct.smooth import masked_smooth
 
+DENOISE_SCALE_M = 0.20  # smoothing under the base clip (integrate_denoised, denoised_columns)
+
 
 @dataclass(frozen=True)
 class Levels:

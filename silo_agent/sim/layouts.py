@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from silo_agent.choices import VIEW_NAMES
 from silo_agent.sim.scenes import Scene
 
 LAYOUTS = ("paper", "wall")
-VIEWS: dict[str, tuple[int, int]] = {
-    "A1": (0, -1), "A2": (1, -1), "A3": (1, 0), "A4": (1, 1),
-    "A5": (0, 1), "A6": (-1, 1), "A7": (-1, 0), "A8": (-1, -1),
-}  # fmt: skip
+VIEWS: dict[str, tuple[int, int]] = dict(zip(VIEW_NAMES, [
+    (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1),
+], strict=True))  # fmt: skip
 PAPER_SQUARE_M = 5.0
 PAPER_CAMERA_Z = 1.0
 WALL_INSET_M = 0.05  # a wall camera's lens in front of the wall

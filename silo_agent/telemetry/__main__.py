@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from silo_agent.config import EX_CONFIG, ConfigError, load_config
+from silo_agent.config import ConfigError, load_config
+from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry.mqtt import Telemetry
 from silo_agent.telemetry.payloads import json_schemas, render_schema, write_schemas

@@ -35,9 +35,9 @@ from pydantic import ValidationError
 from silo_agent import __version__
 from silo_agent.config import Config, ConfigError, MqttConfig, stale_after_s
 from silo_agent.heightmap import HeightMap
-from silo_agent.live.command import LiveCommand, parse_live_request
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
+from silo_agent.telemetry.live_command import LiveCommand, parse_live_request
 from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits, Row
 from silo_agent.telemetry.payloads import (
     ALARM_TYPES,

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import structlog
 
+from silo_agent.atomic import write_atomic
+from silo_agent.config import MqttConfig
 from silo_agent.telemetry.payloads import Envelope
 
 log = structlog.get_logger(__name__)
@@ -70,9 +72,11 @@ WILL_SEQ_HEADROOM = 1_000_000  # seq values a session may use below its Last Wil
 
 @dataclass(frozen=True)
 class OutboxLimits:
-    max_messages: int = 100_000
-    max_bytes: int = 500_000_000
-    max_age_s: float = 30 * 86400.0
+    """The outbox's bounds; the defaults are the `[mqtt]` config's."""
+
+    max_messages: int = MqttConfig.model_fields["outbox_max_messages"].default
+    max_bytes: int = MqttConfig.model_fields["outbox_max_bytes"].default
+    max_age_s: float = MqttConfig.model_fields["outbox_max_age_days"].default * 86400.0
 
 
 @dataclass(frozen=True)
@@ -162,18 +166,8 @@ class Outbox:
 
     def _write_state(self) -> None:
         """Replace the state file atomically (write, fsync, rename, fsync the directory)."""
-        temp = self.state_path.with_name(self.state_path.name + ".tmp")
         try:
-            with open(temp, "w", encoding="utf-8") as handle:
-                json.dump(self._state, handle)
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(temp, self.state_path)
-            directory = os.open(self.state_path.parent, os.O_RDONLY)
-            try:
-                os.fsync(directory)
-            finally:
-                os.close(directory)
+            write_atomic(self.state_path, json.dumps(self._state).encode("utf-8"))
         except OSError as exc:
             log.warning("cannot write the outbox state file", path=str(self.state_path),
                         error=str(exc))

@@ -1,5 +1,5 @@
-"""Fixtures and helpers of the MQTT tests: a private mosquitto per test (tests/mqtt_broker.py,
-never 1883), Telemetry instances on it, realistic results and height maps, schema checks.
+"""Fixtures and helpers of the MQTT tests: a private mosquitto per test (mqtt_broker.py, never
+1883), Telemetry instances on it, realistic results and height maps, schema checks.
 
 The fixtures are registered by tests/conftest.py; test modules import the helpers."""
 
@@ -12,13 +12,13 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 import pytest
-from mqtt_broker import Broker, Collector
 
 from silo_agent.config import MqttConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry.mqtt import Telemetry
+from tests.support.mqtt_broker import Broker, Collector
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCHEMAS = ROOT / "config" / "schemas"
 SILO = "silo-t"
 BASE = f"silo/{SILO}"

@@ -1,0 +1,74 @@
+"""A scan's analysis: what `process`, `scan` and the daemon call.
+
+YOLO first when a model is configured (its robot boxes are cut out of the cloud before the
+surface is built), then the reconstruction, then the piles of both detectors, with ids carried
+over from the previous scan. This module sits above both `silo_agent.reconstruct` and
+`silo_agent.detect`, which do not import each other's orchestration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
+from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
+from silo_agent.detect.geometric import Surface, detect_piles, grid_of
+from silo_agent.geometry import points_outside
+from silo_agent.reconstruct import Result, reconstruct
+from silo_agent.reconstruct.volume import base_surface
+from silo_agent.scan import Scan, Site
+
+if TYPE_CHECKING:
+    from silo_agent.detect.onnx_yolo import Located
+
+
+def analyse(
+    scan: Scan,
+    settings: ReconstructionConfig,
+    detection: DetectionConfig,
+    site: Site | None = None,
+    previous: Sequence[Pile] = (),
+    calibration: CalibrationConfig | None = None,
+) -> Result:
+    """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
+
+    `calibration` sets how the registration residual is measured; with `refine` on, a bounded
+    registration of the overlaps adjusts the scan's extrinsics first (silo_agent.calibrate).
+    """
+    site = site or scan.site
+    found: list[Located] = []
+    robots: list[Robot] = []
+    onnx = detection.onnx
+    if onnx is not None:
+        from silo_agent.detect.onnx_yolo import YoloModel, locate
+
+        found = locate(YoloModel(onnx.model), scan.cameras, onnx.confidence, onnx.iou)
+        robots = robots_of(found, onnx.robot_classes)
+    notes: list[str] = []
+    if calibration is not None and calibration.refine:
+        from silo_agent.calibrate import refine
+
+        scan, notes = refine(scan, calibration, site)
+    result = reconstruct(
+        scan, settings, site, exclude=[r.disc for r in robots], calibration=calibration
+    )
+    if calibration is not None and calibration.refine:
+        result.parameters["refined"] = not notes
+        result.parameters["refine_notes"] = notes
+    result.robots = robots if onnx is not None else None
+    if result.heightmap is None:
+        result.piles = []
+        return result
+    hm = result.heightmap
+    base = base_surface(grid_of(hm), hm.heights.astype(float), site.base, site.floor_z)
+    surface = Surface.of(hm, base, site.floor_z, detection.background_m)
+    piles: list[Pile] = []
+    if detection.geometric:
+        piles += detect_piles(surface, detection)
+    if onnx is not None:
+        cloud = fused_points(scan.cameras)
+        cloud = cloud[points_outside(cloud, [r.disc for r in robots])]
+        piles += onnx_piles(found, onnx.pile_classes, cloud, surface, onnx.cluster_radius_m)
+    result.piles = match_ids(previous, piles, detection.match_distance_m)
+    return result

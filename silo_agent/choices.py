@@ -1,0 +1,22 @@
+"""The choices and defaults that both the config file and the command-line flags offer, in a
+module with no imports beyond `typing`, so that `silo-agent --help` and `process` can name them
+without loading pydantic. `config.py` builds its fields from these; the flags read them."""
+
+from typing import Literal, get_args
+
+Method = Literal["bicm", "rectangle", "alpha", "poisson", "hull"]
+Grain = Literal["wheat", "corn", "soybeans", "rice"]
+Layout = Literal["paper", "wall"]
+
+METHODS: tuple[str, ...] = get_args(Method)
+GRAINS: tuple[str, ...] = get_args(Grain)
+LAYOUTS: tuple[str, ...] = get_args(Layout)
+
+DEFAULT_METHOD: Method = "bicm"
+DEFAULT_GRID_STEP_M = 0.02
+DEFAULT_GRAIN: Grain = "wheat"
+DEFAULT_LAYOUT: Layout = "paper"
+
+# The simulator's camera positions (the paper's A1-A8: midpoints A1 A3 A5 A7, corners A2 A4 A6
+# A8, counter-clockwise from the middle of the -y side); a sim camera's `view` names one.
+VIEW_NAMES: tuple[str, ...] = ("A1", "A2", "A3", "A4", "A5", "A6", "A7", "A8")

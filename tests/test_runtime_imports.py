@@ -1,0 +1,22 @@
+"""The daemon's modules do not load the offline calibration tool (ICP, pose graph, config
+editing): drift monitoring and gravity angles live on the runtime side."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+
+@pytest.mark.parametrize(
+    "module", ["silo_agent.pipeline", "silo_agent.agent", "silo_agent.alarms", "silo_agent.drift"]
+)
+def test_runtime_module_does_not_load_calibrate(module: str) -> None:
+    code = (
+        f"import sys, {module}\n"
+        "print(sorted(m for m in sys.modules if m.startswith('silo_agent.calibrate')))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]", f"{module} loads {done.stdout.strip()}"
