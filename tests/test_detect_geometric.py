@@ -77,8 +77,13 @@ def test_the_reconstruction_leaves_piles_and_robots_to_the_analysis(piles_result
     assert "piles" not in alone and "robots" not in alone
     keys = list(piles_result.summary())
     at = keys.index("registration_residual_m")
-    assert keys[at - 3 : at + 2] == ["timings_s", "piles", "robots", "registration_residual_m",
-                                     "registration_residual"]  # fmt: skip
+    assert keys[at - 3 : at + 2] == [
+        "timings_s",
+        "piles",
+        "robots",
+        "registration_residual_m",
+        "registration_residual",
+    ]
     assert [k for k in keys if k not in ("piles", "robots")] == list(alone)
     lines = piles_result.describe().splitlines()
     at = lines.index("piles     4")
