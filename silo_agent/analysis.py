@@ -25,8 +25,8 @@ from silo_agent.scan import Scan, Site
 if TYPE_CHECKING:
     from silo_agent.detect.onnx_yolo import Located
 
-# Where the published summary (result.json, P/scan, `process --json`) has always put the
-# detection's keys: after these of the reconstruction's, so the bytes stay as they were.
+# The reconstruction's keys that the published summary (result.json, P/scan, `process --json`)
+# has always put after the detection's; kept there so its bytes stay as they were.
 _AFTER_DETECTION = ("registration_residual_m", "registration_residual")
 
 
