@@ -268,8 +268,8 @@ result = service.analyse_scan(scan, analysis, [])
 t.append(time.perf_counter())
 print(json.dumps(service.summarise(result, scan, {}), allow_nan=False))
 t.append(time.perf_counter())
-print(json.dumps({"steps": [b - a for a, b in zip(t, t[1:])], "inner": result.timings_s}),
-      file=sys.stderr)
+inner = result.reconstruction.timings_s
+print(json.dumps({"steps": [b - a for a, b in zip(t, t[1:])], "inner": inner}), file=sys.stderr)
 """
 STEP_NAMES = [
     "import silo_agent.cli, parse the arguments",

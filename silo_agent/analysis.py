@@ -3,13 +3,16 @@
 YOLO first when a model is configured (its robot boxes are cut out of the cloud before the
 surface is built), then the reconstruction, then the piles of both detectors, with ids carried
 over from the previous scan. This module sits above both `silo_agent.reconstruct` and
-`silo_agent.detect`, which do not import each other's orchestration.
+`silo_agent.detect`, which do not import each other's orchestration; its `AnalysisResult`
+carries the reconstruction's `Result` and what detection found on it, so the reconstruction
+knows nothing of piles and robots.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
@@ -22,6 +25,41 @@ from silo_agent.scan import Scan, Site
 if TYPE_CHECKING:
     from silo_agent.detect.onnx_yolo import Located
 
+# The reconstruction's keys that the published summary (result.json, P/scan, `process --json`)
+# has always put after the detection's; kept there so its bytes stay as they were.
+_AFTER_DETECTION = ("registration_residual_m", "registration_residual")
+
+
+@dataclass
+class AnalysisResult:
+    """A scan's reconstruction and the piles (and robots) found on it."""
+
+    reconstruction: Result
+    piles: list[Pile]  # both detectors', ids carried over from the previous scan
+    robots: list[Robot] | None  # None: no YOLO model configured
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON object of `silo-agent process --json` (docs/scan-format.md) and MQTT."""
+        summary = self.reconstruction.summary()
+        after = {key: summary.pop(key) for key in _AFTER_DETECTION}
+        summary["piles"] = [p.to_json() for p in self.piles]
+        summary["robots"] = None if self.robots is None else [r.to_json() for r in self.robots]
+        return summary | after
+
+    def describe(self) -> str:
+        """A few human-readable lines."""
+        findings = [f"piles     {len(self.piles)}"]
+        findings += [
+            f"  #{p.id:<3} {p.detector:<9} at ({p.centroid[0]:.2f}, {p.centroid[1]:.2f})"
+            f"  peak {p.peak_height_m:.3f} m  footprint {p.footprint_m2:.2f} m²"
+            f"  volume {p.volume_m3:.4f} m³"
+            for p in self.piles
+        ]
+        findings += [
+            f"robot     at ({r.x:.2f}, {r.y:.2f})  seen by {r.camera}" for r in self.robots or []
+        ]
+        return self.reconstruction.describe(findings)
+
 
 def analyse(
     scan: Scan,
@@ -30,7 +68,7 @@ def analyse(
     site: Site | None = None,
     previous: Sequence[Pile] = (),
     calibration: CalibrationConfig | None = None,
-) -> Result:
+) -> AnalysisResult:
     """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
 
     `calibration` sets how the registration residual is measured; with `refine` on, a bounded
@@ -56,10 +94,9 @@ def analyse(
     if calibration is not None and calibration.refine:
         result.parameters["refined"] = not notes
         result.parameters["refine_notes"] = notes
-    result.robots = robots if onnx is not None else None
+    found_robots = robots if onnx is not None else None
     if result.heightmap is None:
-        result.piles = []
-        return result
+        return AnalysisResult(result, [], found_robots)
     hm = result.heightmap
     base = base_surface(grid_of(hm), hm.heights.astype(float), site.base, site.floor_z)
     surface = Surface.of(hm, base, site.floor_z, detection.background_m)
@@ -70,5 +107,6 @@ def analyse(
         cloud = fused_points(scan.cameras)
         cloud = cloud[points_outside(cloud, [r.disc for r in robots])]
         piles += onnx_piles(found, onnx.pile_classes, cloud, surface, onnx.cluster_radius_m)
-    result.piles = match_ids(previous, piles, detection.match_distance_m)
-    return result
+    return AnalysisResult(
+        result, match_ids(previous, piles, detection.match_distance_m), found_robots
+    )

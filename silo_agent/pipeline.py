@@ -40,6 +40,7 @@ from silo_agent.telemetry.mqtt import Telemetry
 from silo_agent.telemetry.sparkplug import iso_to_ms
 
 if TYPE_CHECKING:
+    from silo_agent.analysis import AnalysisResult
     from silo_agent.detect import Pile
 
 log = structlog.get_logger(__name__)
@@ -168,16 +169,17 @@ class Pipeline:
 
         previous = previous_piles(self.cache, scan_id)
         try:
-            result = analyse_scan(scan, analysis_of(scan), previous)
+            analysed = analyse_scan(scan, analysis_of(scan), previous)
         except Exception as exc:  # a bug or a bad model must not stop the agent
             log.exception("processing failed", scan_id=scan_id)
             return self._failed(scan_id, captured_at, f"processing: {exc}", capture.failures,
                                 timings, failed, cache_full)
         t = lap("reconstruct", t)
         check()
-        summary = summarise(result, scan, timings)
+        summary = summarise(analysed, scan, timings)
         if directory is not None:  # kept before the alarms, so losing it raises `cache`
-            cache_full = not self._keep_result(directory, summary, result, previous)
+            cache_full = not self._keep_result(directory, summary, analysed, previous)
+        result = analysed.reconstruction
         surface = summary.get("surface") or {}
         inputs = Inputs(
             scan_id=scan_id, heightmap=result.heightmap, volume_m3=result.volume_m3,
@@ -228,7 +230,7 @@ class Pipeline:
         log.error("disk still full, scan published uncached", scan_id=scan.scan_id)
         return None, True
 
-    def _keep_result(self, directory: Path, summary: dict[str, Any], result: Result,
+    def _keep_result(self, directory: Path, summary: dict[str, Any], result: AnalysisResult,
                      previous: list[Pile]) -> bool:
         """result.json, the height map and inputs.json into the scan's directory; on a full
         disk evict older scans and retry once. False if they could not all be kept."""

@@ -32,10 +32,10 @@ from silo_agent.config import (
 from silo_agent.scan import MANIFEST, Scan, ScanError, Site, read_scan
 
 if TYPE_CHECKING:
+    from silo_agent.analysis import AnalysisResult
     from silo_agent.audit import AuditCache
     from silo_agent.capture import CameraFailure
     from silo_agent.detect import Pile
-    from silo_agent.reconstruct import Result
     from silo_agent.scan import CameraCloud
 
 Model = TypeVar("Model", bound=BaseModel)
@@ -119,7 +119,7 @@ def overridden(analysis: Analysis, config: Config | None, grid_step_m: float | N
         raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
 
 
-def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> Result:
+def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> AnalysisResult:
     """Reconstruct and detect, as every path does it."""
     from silo_agent.analysis import analyse
 
@@ -127,7 +127,7 @@ def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> Result
                    previous=previous, calibration=analysis.calibration)  # fmt: skip
 
 
-def summarise(result: Result, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
+def summarise(result: AnalysisResult, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
     """The result as published on `P/scan` and kept as `result.json` by every path."""
     failures = scan.extra.get("failures") or []
     summary = result.summary()
@@ -163,18 +163,18 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
     return []
 
 
-def keep_result(directory: Path, summary: dict[str, Any], result: Result,
+def keep_result(directory: Path, summary: dict[str, Any], result: AnalysisResult,
                 previous: list[Pile]) -> None:
     """The summary, height map and processing inputs next to the scan, each written atomically."""
     from silo_agent.audit import AuditCache
 
     inputs = {"previous_piles": [p.to_json() for p in previous]}
-    AuditCache.add_result(directory, summary, result.heightmap, inputs)
+    AuditCache.add_result(directory, summary, result.reconstruction.heightmap, inputs)
 
 
 def process_directory(directory: Path, config: Config | None = None,
                       grid_step_m: float | None = None,
-                      method: str | None = None) -> tuple[Scan, Result, dict[str, Any]]:
+                      method: str | None = None) -> tuple[Scan, AnalysisResult, dict[str, Any]]:
     """`silo-agent process` of one scan directory: (scan, result, summary); nothing written.
 
     Raises ScanError for a bad directory, ConfigError for bad settings, ModelError for a bad

@@ -10,11 +10,11 @@ import sys
 import numpy as np
 import pytest
 
-from silo_agent.analysis import analyse
+from silo_agent.analysis import AnalysisResult, analyse
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, match_ids
 from silo_agent.geometry import points_outside
-from silo_agent.reconstruct import reconstruct
+from silo_agent.reconstruct import Result, reconstruct
 from silo_agent.scan import Scan, write_scan
 from silo_agent.sim import make_scene, simulate
 from silo_agent.sim.scenes import _bay
@@ -50,7 +50,8 @@ def test_finds_every_pile_with_its_centroid_and_volume(piles_result) -> None:
         assert abs(p.peak_height_m - t.apex[2]) < 0.05
         assert np.hypot(p.peak[0] - t.apex[0], p.peak[1] - t.apex[1]) < 0.1
     # the piles share the engine's volume: together they are the scan's volume
-    assert sum(p.volume_m3 for p in piles) == pytest.approx(piles_result.volume_m3, rel=0.01)
+    volume = piles_result.reconstruction.volume_m3
+    assert sum(p.volume_m3 for p in piles) == pytest.approx(volume, rel=0.01)
     # largest first, ids 1..n without an earlier scan
     assert [p.id for p in piles] == [1, 2, 3, 4]
     assert [p.volume_m3 for p in piles] == sorted((p.volume_m3 for p in piles), reverse=True)
@@ -65,6 +66,29 @@ def test_summary_and_description_carry_the_piles(piles_result) -> None:
     assert Pile.from_json(first) == piles_result.piles[0]
     text = piles_result.describe()
     assert "piles     4" in text and text.count(" geometric ") == 4
+
+
+def test_the_reconstruction_leaves_piles_and_robots_to_the_analysis(piles_result) -> None:
+    """`Result` is the reconstruction's alone; the analysis puts the detection's keys and lines
+    where result.json, `P/scan` and `process` have always had them."""
+    assert isinstance(piles_result, AnalysisResult)
+    assert not {f.name for f in dataclasses.fields(Result)} & {"piles", "robots"}
+    alone = piles_result.reconstruction.summary()
+    assert "piles" not in alone and "robots" not in alone
+    keys = list(piles_result.summary())
+    at = keys.index("registration_residual_m")
+    assert keys[at - 3 : at + 2] == [
+        "timings_s",
+        "piles",
+        "robots",
+        "registration_residual_m",
+        "registration_residual",
+    ]
+    assert [k for k in keys if k not in ("piles", "robots")] == list(alone)
+    lines = piles_result.describe().splitlines()
+    at = lines.index("piles     4")
+    assert lines[at - 1] == "valid     yes" and lines[-1].startswith("time ")
+    assert len(lines) == at + 1 + 4 + 1  # the pile count, a line per pile, the time
 
 
 def flat_scene(level: float):
@@ -89,7 +113,7 @@ def test_a_flat_level_is_one_heap_above_the_floor_and_no_pile_above_its_backgrou
     scan = simulate(flat_scene(1.2), VIEWS, seed=4)
     heap = analyse(scan, SETTINGS, DetectionConfig())
     assert len(heap.piles) == 1  # noise bumps on the level are not piles of their own
-    assert heap.piles[0].volume_m3 == pytest.approx(heap.volume_m3, rel=1e-6)
+    assert heap.piles[0].volume_m3 == pytest.approx(heap.reconstruction.volume_m3, rel=1e-6)
     assert heap.piles[0].footprint_m2 == pytest.approx(36.0, rel=0.01)
     assert analyse(scan, SETTINGS, DetectionConfig(background_m=2.0)).piles == []
 

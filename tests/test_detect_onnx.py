@@ -235,7 +235,7 @@ def test_boxes_become_a_pile_and_a_robot_in_the_silo_frame(scan: Scan, model_pat
     # its points are not grain: the volume is the cone's, not the cone's and the bump's
     plain = reconstruct(scan, ReconstructionConfig())
     assert plain.volume_m3 == pytest.approx(cone_volume + bump_volume, rel=0.03)
-    assert result.volume_m3 == pytest.approx(cone_volume, rel=0.03)
+    assert result.reconstruction.volume_m3 == pytest.approx(cone_volume, rel=0.03)
     # both detectors find the cone; the geometric one no longer sees the robot as a pile
     by_detector = {p.detector: p for p in result.piles}
     assert sorted(by_detector) == ["geometric", "onnx"] and len(result.piles) == 2

@@ -40,7 +40,7 @@ def published():
     scene = make_scene("cone", "wheat")
     scan = simulate(scene, ["A1", "A5"], 0, (0.0, 0.0), 0.05)
     result = analyse(scan, ReconstructionConfig.model_validate(scan.reconstruction),
-                     DetectionConfig())  # fmt: skip
+                     DetectionConfig()).reconstruction  # fmt: skip
     return scan, result, encode_heightmap(result.heightmap, scan.scan_id)
 
 

@@ -1,8 +1,9 @@
 """No import cycle between silo_agent's packages: each one can be read, tested and replaced
 from the bottom up (reconstruction below detection, both below the analysis that runs them).
 
-Imports inside functions count (they are still dependencies); imports under
-`if TYPE_CHECKING:` do not (they never run)."""
+Every import counts: inside functions (still a dependency when it runs) and under
+`if TYPE_CHECKING:` (a type one package names is part of what it depends on; a cycle hidden
+there is a layer that knows too much)."""
 
 from __future__ import annotations
 
@@ -28,22 +29,12 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _type_checking_only(node: ast.If) -> bool:
-    test = node.test
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
-    )
-
-
 def _imports(tree: ast.AST, package: str) -> set[str]:
     """Absolute names of the silo_agent modules imported by `tree` (`package`: for `from .`)."""
     found: set[str] = set()
     stack = [tree]
     while stack:
         node = stack.pop()
-        if isinstance(node, ast.If) and _type_checking_only(node):
-            stack.extend(node.orelse)
-            continue
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -108,6 +99,17 @@ def test_the_graph_sees_imports_inside_functions() -> None:
     assert _imports(tree, "silo_agent.reconstruct") == {
         "silo_agent.detect",
         "silo_agent.detect.analyse",
+    }
+
+
+def test_the_graph_sees_imports_for_type_checking() -> None:
+    tree = ast.parse(
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n    from silo_agent.detect.piles import Pile\n"
+    )
+    assert _imports(tree, "silo_agent.reconstruct") == {
+        "silo_agent.detect.piles",
+        "silo_agent.detect.piles.Pile",
     }
 
 

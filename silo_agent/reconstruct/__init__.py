@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -33,10 +33,6 @@ from silo_agent.reconstruct.volume import (
 )
 from silo_agent.scan import Scan, Site
 
-if TYPE_CHECKING:
-    from silo_agent.detect import Robot
-    from silo_agent.detect.piles import Pile
-
 __all__ = ["Result", "reconstruct", "site_from_config"]
 
 EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted_cells)
@@ -46,7 +42,7 @@ SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spi
 
 @dataclass
 class Result:
-    """Everything a scan's reconstruction says, ready for `process`, MQTT and audit."""
+    """Everything a scan's reconstruction says; `silo_agent.analysis` adds what detection finds."""
 
     scan_id: str
     method: str
@@ -63,12 +59,10 @@ class Result:
     points: dict[str, int] = field(default_factory=dict)
     parameters: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
-    piles: list[Pile] | None = None  # silo_agent.detect; None: detection did not run
-    robots: list[Robot] | None = None  # None: no YOLO model configured
     registration: dict[str, PairResidual] = field(default_factory=dict)  # reconstruct/residual
 
     def summary(self) -> dict[str, Any]:
-        """The JSON object of `silo-agent process --json` (scan-format.md) and MQTT."""
+        """The reconstruction's part of the published summary (docs/scan-format.md)."""
         surface = level = None
         if self.surface is not None:
             s = self.surface
@@ -90,14 +84,12 @@ class Result:
             "points": self.points,
             "parameters": self.parameters,
             "timings_s": self.timings_s,
-            "piles": None if self.piles is None else [p.to_json() for p in self.piles],
-            "robots": None if self.robots is None else [r.to_json() for r in self.robots],
             "registration_residual_m": {k: r.median_m for k, r in self.registration.items()},
             "registration_residual": {k: r.to_json() for k, r in self.registration.items()},
         }
 
-    def describe(self) -> str:
-        """A few human-readable lines."""
+    def describe(self, findings: Sequence[str] = ()) -> str:
+        """A few human-readable lines; `findings` (what detection found) go before the time."""
         lines = [f"scan      {self.scan_id}  ({self.method}, grid {self.grid_step_m * 100:g} cm)"]
         if self.volume_m3 is None:
             lines.append("volume    unknown")
@@ -112,16 +104,7 @@ class Result:
                 " m above floor"
             )
         lines.append("valid     yes" if self.valid else f"valid     NO: {self.invalid_reason}")
-        if self.piles is not None:
-            lines.append(f"piles     {len(self.piles)}")
-            for p in self.piles:
-                lines.append(
-                    f"  #{p.id:<3} {p.detector:<9} at ({p.centroid[0]:.2f}, {p.centroid[1]:.2f})"
-                    f"  peak {p.peak_height_m:.3f} m  footprint {p.footprint_m2:.2f} m²"
-                    f"  volume {p.volume_m3:.4f} m³"
-                )
-        for r in self.robots or []:
-            lines.append(f"robot     at ({r.x:.2f}, {r.y:.2f})  seen by {r.camera}")
+        lines.extend(findings)
         total = sum(self.timings_s.values())
         lines.append(f"time      {total * 1000:.0f} ms  ({len(self.cameras)} camera(s))")
         return "\n".join(lines)
