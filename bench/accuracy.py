@@ -69,7 +69,8 @@ def split_views(combo: str) -> list[str]:
 
 
 def _volume(scan: Scan, method: str, step: float) -> float | None:
-    return reconstruct(scan, ReconstructionConfig(grid_step_m=step, method=method)).volume_m3
+    settings = ReconstructionConfig.model_validate({"grid_step_m": step, "method": method})
+    return reconstruct(scan, settings).volume_m3
 
 
 def run_group(scene_name: str, views: str, seeds: Sequence[int], calibs: Sequence[str],

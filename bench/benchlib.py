@@ -21,6 +21,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from silo_agent.config import ReconstructionConfig
+from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.grid import Grid, fuse_and_crop
 from silo_agent.scan import Scan, write_ply
 
@@ -66,6 +68,14 @@ def header(title: str, note: str = "") -> list[str]:
     if note:
         lines.append(f"- {note}")
     return [*lines, ""]
+
+
+def volume_m3(scan: Scan, settings: ReconstructionConfig) -> float:
+    """The reconstructed volume of a bench scan; one without a volume is a broken benchmark."""
+    result = reconstruct(scan, settings)
+    if result.volume_m3 is None:
+        raise RuntimeError(f"{scan.scan_id}: no volume ({result.invalid_reason})")
+    return result.volume_m3
 
 
 def fused_cloud(scan: Scan, step: float) -> np.ndarray:

@@ -34,7 +34,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from benchlib import header
+from benchlib import header, volume_m3
 from scipy.spatial.transform import Rotation
 
 from silo_agent.calibrate import (
@@ -83,6 +83,12 @@ class Run:
     height_mm: float  # mean height error of the cameras' views at the pile centre
     floor_fit_mm: float  # mean height at the pile centre of the floors fitted on true poses
     spaced: Spaced | None = None  # after --floor with measured spacings (--spacing-sigma)
+
+    def with_spacings(self) -> Spaced:
+        """`spaced`, for the spacing tables, which only runs with --spacing-sigma reach."""
+        if self.spaced is None:
+            raise ValueError(f"{self.scene} {self.views} seed {self.seed}: run without spacings")
+        return self.spaced
 
 
 @dataclass(frozen=True)
@@ -202,8 +208,7 @@ def pooled_run(rig: SimRig, views: str, seed: int, scans: list[Scan], perfect: f
     pooled = pool_scans(scans)
 
     def pp(poses: dict) -> float:
-        cams = with_extrinsics(scan.cameras, poses)
-        volume = reconstruct(replace(scan, cameras=cams), settings).volume_m3
+        volume = volume_m3(replace(scan, cameras=with_extrinsics(scan.cameras, poses)), settings)
         return 100.0 * (volume - perfect) / scene.volume_m3
 
     started = time.perf_counter()
@@ -226,7 +231,7 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
 
     def volume(poses: dict | None) -> float:
         cams = scan.cameras if poses is None else with_extrinsics(scan.cameras, poses)
-        return reconstruct(replace(scan, cameras=cams), settings).volume_m3
+        return volume_m3(replace(scan, cameras=cams), settings)
 
     perfect = volume(truth)
     started = time.perf_counter()
@@ -257,16 +262,18 @@ def one(rig: SimRig, views: str, seed: int, settings: ReconstructionConfig,
             return float(np.linalg.norm(truth[sp.a][:3, 3] - truth[sp.b][:3, 3]))
 
         after = spaced.extrinsics()
-        run = replace(run, spaced=Spaced(
+        with_spacings = Spaced(
             pp(volume(after)), pp(volume(sh)), pp(volume(sv)), sdil,
-            max(1000 * abs(np.linalg.norm(after[sp.a][:3, 3] - after[sp.b][:3, 3]) - true_m(sp))
+            max(1000 * abs(float(np.linalg.norm(after[sp.a][:3, 3] - after[sp.b][:3, 3]))
+                           - true_m(sp))
                 for sp in spacings),
             max(1000 * abs(sp.distance_m - true_m(sp)) for sp in spacings),
-            max_residual(spaced.residual_after), spaced_seconds))
+            max_residual(spaced.residual_after), spaced_seconds)
         if any(n > 1 for n in pool):
             both = pooled_run(rig, views, seed, scans[:max(pool)], perfect, settings,
                               CalibrationConfig(spacing=spacings))
-            run = replace(run, spaced=replace(run.spaced, pooled=both))
+            with_spacings = replace(with_spacings, pooled=both)
+        run = replace(run, spaced=with_spacings)
     pooled = [pooled_run(rig, views, seed, scans[:n], perfect, settings)
               for n in pool if n > 1]
     return run, pooled
@@ -453,12 +460,12 @@ def report_pooled(runs: list[Run], pooled: list[Pooled]) -> list[str]:
         return float(np.sqrt(np.mean(np.square(values))))
 
     for (scene, views), group in groups.items():
-        after = per_n(group, lambda g: f"{np.mean([abs(r.after_pp) for r in g]):.2f} / "
-                                       f"{max(abs(r.after_pp) for r in g):.2f}", " | ")
+        after_column = per_n(group, lambda g: f"{np.mean([abs(r.after_pp) for r in g]):.2f} / "
+                                              f"{max(abs(r.after_pp) for r in g):.2f}", " | ")
         height = per_n(group, lambda g: f"{rms([r.height_mm for r in g]):.2f}", " / ")
         fit = per_n(group, lambda g: f"{rms([r.floor_fit_mm for r in g]):.2f}", " / ")
         seconds = per_n(group, lambda g: f"{np.mean([r.seconds for r in g]):.1f}", " / ")
-        lines.append(f"| {scene} | {views} | {after} | {height} | {fit} | {seconds} |")
+        lines.append(f"| {scene} | {views} | {after_column} | {height} | {fit} | {seconds} |")
     lines += ["", "### Targets, by number of scans pooled", "",
               "| views | scans pooled | within 0.3 pp of perfect | mean abs (pp) | worst (pp) "
               "| mean abs vertical part (pp) | mean abs horizontal part (pp) "
@@ -518,7 +525,7 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
     for run in runs:
         groups.setdefault((run.scene, run.views), []).append(run)
     for (scene, views), rows in groups.items():
-        sp = [r.spaced for r in rows]
+        sp = [r.with_spacings() for r in rows]
         lines.append(
             f"| {scene} | {views} | {np.mean([abs(r.after_pp) for r in rows]):.2f} / "
             f"{np.mean([abs(s.after_pp) for s in sp]):.2f} "
@@ -532,7 +539,7 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
             f"{np.mean([s.seconds for s in sp]):.1f} |")
 
     def both_rows(rows: list[Run]) -> list[tuple[str, list[tuple]]]:
-        both = [r.spaced.pooled for r in rows if r.spaced.pooled is not None]
+        both = [s.pooled for s in map(Run.with_spacings, rows) if s.pooled is not None]
         if len(both) != len(rows):
             return []
         return [(f"with, {both[0].n} scans pooled", [
@@ -549,7 +556,7 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
         for label, got in (("without", [(r.after_pp, r.vertical_pp, r.horizontal_pp,
                                          r.dilation_mm, r.residual_after_m) for r in rows]),
                            ("with", [(s.after_pp, s.vertical_pp, s.horizontal_pp, s.dilation_mm,
-                                      s.residual_after_m) for s in (r.spaced for r in rows)]),
+                                      s.residual_after_m) for s in map(Run.with_spacings, rows)]),
                            *both_rows(rows)):
             after = np.abs([g[0] for g in got])
             lines.append(
@@ -565,7 +572,8 @@ def report_spaced(runs: list[Run], sigma: float) -> list[str]:
               "| with spacings and the most scans pooled: after / horizontal part (pp) |",
               "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in runs:
-        s, b = r.spaced, r.spaced.pooled
+        s = r.with_spacings()
+        b = s.pooled
         both = f"{b.after_pp:+.2f} / {b.horizontal_pp:+.2f} (N = {b.n})" if b else ""
         lines.append(f"| {r.scene} | {r.views} | {r.seed} | {r.after_pp:+.2f} / {s.after_pp:+.2f} "
                      f"| {r.horizontal_pp:+.2f} / {s.horizontal_pp:+.2f} "

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from benchlib import header
+from benchlib import header, volume_m3
 from calibration import (
     ERROR,
     TARGET_PP,
@@ -46,7 +46,6 @@ from silo_agent.calibrate import (
     with_extrinsics,
 )
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
-from silo_agent.reconstruct import reconstruct
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
 
@@ -106,7 +105,7 @@ def one(empty: SimRig, cone: SimRig, views: str, seed: int, settings: Reconstruc
 
     def volume(poses: dict | None) -> float:
         cams = cone_scan.cameras if poses is None else with_extrinsics(cone_scan.cameras, poses)
-        return reconstruct(replace(cone_scan, cameras=cams), settings).volume_m3
+        return volume_m3(replace(cone_scan, cameras=cams), settings)
 
     perfect = volume(truth)
     exact = cone.scene.volume_m3

@@ -113,9 +113,11 @@ def main() -> None:
     scene = make_scene("piles")
     scan = simulate(scene, VIEWS, seed=args.seed, color=True)
     detection = DetectionConfig()
-    rows = []
+    rows: list[tuple[str, float, int | None]] = []
     for step in (0.02, 0.01):
         result = reconstruct(scan, ReconstructionConfig(grid_step_m=step))
+        if result.heightmap is None:
+            raise RuntimeError(f"no height map at a {step} m step: {result.invalid_reason}")
         hm = result.heightmap
         base = base_surface(grid_of(hm), hm.heights.astype(float), scan.site.base,
                             scan.site.floor_z)  # fmt: skip

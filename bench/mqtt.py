@@ -33,6 +33,7 @@ from paho.mqtt.enums import CallbackAPIVersion  # noqa: E402
 from silo_agent.config import MqttConfig  # noqa: E402
 from silo_agent.log import configure_logging  # noqa: E402
 from silo_agent.telemetry.mqtt import Telemetry  # noqa: E402
+from silo_agent.telemetry.payloads import Envelope  # noqa: E402
 
 SILO = "bench"
 # mosquitto's default (Nagle on) lets broker->subscriber traffic wait for delayed ACKs
@@ -136,9 +137,12 @@ def bench_latency(work: Path, samples: int) -> dict:
         counter.want = len(counter.arrivals) + 1
         counter.event.clear()
         t0 = time.perf_counter()
-        tel.outbox.enqueue(f"{BASE}/scan",
-                           lambda e, k=k: json.dumps({"scan_id": f"o-{k}", **e.model_dump()})
-                           .encode())
+
+        def build(env: Envelope | None, k: int = k) -> bytes:
+            assert env is not None  # enqueue makes one unless told not to
+            return json.dumps({"scan_id": f"o-{k}", **env.model_dump()}).encode()
+
+        tel.outbox.enqueue(f"{BASE}/scan", build)
         enqueue.append(time.perf_counter() - t0)
         counter.event.wait(5)
         through_outbox.append(counter.arrivals[f"o-{k}"] - t0)

@@ -200,7 +200,10 @@ def section_c(base: Scan, runs: int, workdir: Path,
         return "—" if v is None else f"{100 * (v - truth) / truth:+.2f} %"
 
     def errors(timed: Timed) -> str:
-        return f"{err(min(timed.volumes))} .. {err(max(timed.volumes))}"
+        volumes = [v for v in timed.volumes if v is not None]
+        if len(volumes) < len(timed.volumes):
+            return "—"  # a scan without a volume: no range
+        return f"{err(min(volumes))} .. {err(max(volumes))}"
 
     n = CACHED_SCANS
     return [

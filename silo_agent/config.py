@@ -245,8 +245,9 @@ class CameraConfig(Strict):
             )
         if self.aggregation == "temporal" and not self.temporal_filter:
             raise ValueError("aggregation = 'temporal' needs temporal_filter = true")
-        if has_matrix or has_euler:
-            problem = rigid_transform_problem(self.extrinsic_matrix())
+        matrix = self.extrinsic_matrix()
+        if matrix is not None:
+            problem = rigid_transform_problem(matrix)
             if problem:
                 raise ValueError(f"{'extrinsic' if has_matrix else 'translate_m'}: {problem}")
         return self
@@ -395,7 +396,7 @@ def scan_gap_s(schedule: ScheduleConfig, timezone: str) -> float | None:
         from apscheduler.triggers.cron import CronTrigger
 
         trigger = CronTrigger.from_crontab(schedule.cron, timezone=timezone)
-        fires = []
+        fires: list[datetime] = []
         fire = trigger.get_next_fire_time(None, datetime.now(UTC))
         while fire is not None and len(fires) < CRON_LOOKAHEAD_FIRES:
             fires.append(fire)
@@ -707,7 +708,7 @@ def environment_problems(config: Config) -> list[str]:
                       "mqtt.tls.key_file": tls.key_file,
                       "mqtt.tls.key_password_file": tls.key_password_file})
     for key, path in files.items():
-        problem = path is not None and _readable_file_problem(path)
+        problem = _readable_file_problem(path) if path is not None else None
         if problem:
             problems.append(f"{key}: {problem}")
     return problems

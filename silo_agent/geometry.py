@@ -59,7 +59,8 @@ def euler_from_rotation(rotation: np.ndarray) -> tuple[float, float, float]:
     else:  # gimbal lock: put everything in rz
         rx = 0.0
         rz = np.arctan2(-rotation[0, 1], rotation[1, 1])
-    return tuple(float(v) for v in np.degrees([rx, ry, rz]))  # type: ignore[return-value]
+    x_deg, y_deg, z_deg = np.degrees([rx, ry, rz])
+    return float(x_deg), float(y_deg), float(z_deg)
 
 
 def transform_from_euler(rotate_deg: Sequence[float], translate_m: Sequence[float]) -> np.ndarray:

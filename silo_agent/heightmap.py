@@ -36,7 +36,7 @@ class HeightMap:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.heights.shape  # type: ignore[return-value]
+        return self.heights.shape
 
     def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """(x, y) of every cell centre, each shaped like `heights`."""

@@ -8,6 +8,7 @@ each alarm type) exists from the start at 0, so `absent()` never hides a quiet a
 from __future__ import annotations
 
 from collections.abc import Iterable
+from wsgiref.simple_server import WSGIServer
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 
@@ -54,7 +55,7 @@ class Metrics:
             self.scans.labels(outcome)
         self.set_alarms(())
         self._dropped_seen = 0
-        self._server = None
+        self._server: WSGIServer | None = None
 
     def set_alarms(self, active: Iterable[str]) -> None:
         """1 for the raised alarm types, 0 for every other one."""

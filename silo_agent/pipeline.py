@@ -148,10 +148,12 @@ class Pipeline:
         log.info("scan started", scan_id=scan_id)
         capture = capture_all(config, scan_number)
         t = lap("capture", t)
-        cameras = {c.serial: ("ok", None) for c in capture.clouds}
+        cameras: dict[str, tuple[str, str | None]] = {
+            c.serial: ("ok", None) for c in capture.clouds
+        }
         cameras.update({f.serial: ("failed", f.error) for f in capture.failures})
-        for serial, (state, _error) in cameras.items():
-            self.metrics.camera_up.labels(serial).set(1 if state == "ok" else 0)
+        for serial, (camera_state, _error) in cameras.items():
+            self.metrics.camera_up.labels(serial).set(1 if camera_state == "ok" else 0)
         self.telemetry.set_status(cameras=cameras)
         for failure in capture.failures:
             log.warning("camera failed", scan_id=scan_id, serial=failure.serial,

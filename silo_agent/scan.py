@@ -211,7 +211,9 @@ def _open_regular(path: Path) -> Iterator[BinaryIO]:
 
 def _ply_header(path: Path, header: list[str]) -> tuple[int, list[tuple[str, str]]]:
     """(vertex count, [(property, dtype)]) of a PLY header's lines."""
-    count, props, in_vertex, fmt = None, [], False, None
+    count: int | None = None
+    props: list[tuple[str, str]] = []
+    in_vertex, fmt = False, None
     for line in header[1:]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):

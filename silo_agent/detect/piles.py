@@ -73,7 +73,7 @@ def match_ids(previous: Sequence[Pile], new: Sequence[Pile], max_distance_m: flo
         allowed = same & (distance <= max_distance_m)
         cost = np.where(allowed, distance, max_distance_m * 1e3 + 1.0)
         rows, cols = linear_sum_assignment(cost)
-        for r, c in zip(rows, cols, strict=True):
+        for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
             if allowed[r, c]:
                 ids[r] = previous[c].id
     next_id = max((p.id for p in previous), default=0) + 1

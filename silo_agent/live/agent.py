@@ -39,6 +39,13 @@ class LiveControl:
         self._command: LiveCommand | None = None
         self._count = 0
 
+    def _active_session_id(self) -> str:
+        """Id of the session asked for or running; the caller holds the lock and knows one is."""
+        if self._start is not None:
+            return self._start[1]
+        assert self.session is not None
+        return self.session.session_id
+
     def requested(self, command: LiveCommand) -> str:
         """MQTT thread: check the request and leave it for `tend`; the session id."""
         request = command.request
@@ -49,10 +56,10 @@ class LiveControl:
                 if not active:
                     raise CommandRejected("no live session is running")
                 self._stop_asked = True
-                session_id = self._start[1] if self._start else self.session.session_id  # type: ignore[union-attr]
+                session_id = self._active_session_id()
             else:
                 if active:
-                    running = self._start[1] if self._start else self.session.session_id  # type: ignore[union-attr]
+                    running = self._active_session_id()
                     raise CommandRejected(f"busy: live session {running} is running; "
                                           'send {"on": false} first', scan_id=running)  # fmt: skip
                 try:

@@ -184,8 +184,8 @@ class LiveMap:
         """Mean height of the frames' points per cell (NaN: none) and the point counts."""
         rows, cols = self._limits
         n_cells = rows * cols
-        count = np.zeros(n_cells)
-        total = np.zeros(n_cells)
+        count: np.ndarray = np.zeros(n_cells)  # flat while summing, then (rows, cols)
+        total: np.ndarray = np.zeros(n_cells)
         d = self.settings.decimation
         for frame in frames:
             rays = self._rays_of(frame)

@@ -49,7 +49,7 @@ class SimFrameSource:
         if missing:
             raise CaptureError(
                 f"live mode runs on sim cameras with a view; not on {', '.join(missing)}")
-        self._rig = RobotRig(views=tuple(c.view for c in cameras),  # type: ignore[misc]
+        self._rig = RobotRig(views=tuple(c.view for c in cameras if c.view is not None),
                              seed=config.simulation.seed, width=cameras[0].width,
                              height=cameras[0].height, mesh_step=SIM_MESH_STEP_M)  # fmt: skip
         self._serials = [c.serial for c in cameras]

@@ -73,7 +73,8 @@ def _poisson(points: np.ndarray, grid: Grid, site: Site, depth: int) -> np.ndarr
     top = float(points[:, 2].max()) + 10.0
     rays = np.zeros((xs.size, 6), dtype=np.float32)
     rays[:, 0], rays[:, 1], rays[:, 2], rays[:, 5] = xs.ravel(), ys.ravel(), top, -1.0
-    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    # open3d's stub makes Tensor's dtype and device required; they default (array's, CPU)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()  # type: ignore[call-overload]
     heights = np.where(np.isfinite(hit), top - hit, site.floor_z).reshape(grid.shape)
     return np.where(grid.inside > 0, heights, np.nan)
 

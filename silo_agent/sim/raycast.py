@@ -23,14 +23,17 @@ class Raycaster:
     def __init__(self, world: World) -> None:
         self._scene = o3d.t.geometry.RaycastingScene()
         for mesh in world.meshes:
+            # open3d's stub makes Tensor's dtype and device required; they default (array's, CPU)
             self._scene.add_triangles(
-                o3d.core.Tensor(mesh.vertices), o3d.core.Tensor(mesh.triangles)
+                o3d.core.Tensor(mesh.vertices),  # type: ignore[call-overload]
+                o3d.core.Tensor(mesh.triangles),  # type: ignore[call-overload]
             )
         self._materials = np.array([m.material for m in world.meshes] + [-1])
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
-        result = self._scene.cast_rays(o3d.core.Tensor(rays))
+        # open3d's stub makes Tensor's dtype and device required; they default (array's, CPU)
+        result = self._scene.cast_rays(o3d.core.Tensor(rays))  # type: ignore[call-overload]
         t = result["t_hit"].numpy()
         geometry = result["geometry_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t)

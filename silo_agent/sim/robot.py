@@ -105,7 +105,7 @@ class RakingRobot:
         """Where the rear edge (the rake) is at time t."""
         unit, _ = self._direction
         reach = max(0.0, self.travelled(t) - ROBOT_SIZE_M[0] / 2)
-        return tuple(np.asarray(self.path[0]) + unit * reach)  # type: ignore[return-value]
+        return tuple(np.asarray(self.path[0]) + unit * reach)
 
     def height(self, t: float) -> HeightField:
         """The grain surface at time t: the base, cut down to rake_z behind the rake, slumping

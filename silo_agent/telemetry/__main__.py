@@ -26,7 +26,7 @@ from silo_agent.config import ConfigError, load_config
 from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.heightmap import HeightMap
 from silo_agent.telemetry.mqtt import Telemetry
-from silo_agent.telemetry.payloads import json_schemas, render_schema, write_schemas
+from silo_agent.telemetry.payloads import Envelope, json_schemas, render_schema, write_schemas
 
 DEFAULT_SCHEMAS = Path(__file__).resolve().parents[2] / "config" / "schemas"
 
@@ -43,8 +43,8 @@ def load_heightmap(path: Path) -> HeightMap:
         )
 
 
-def _emit(topic: str, env: object) -> None:
-    print(json.dumps({"topic": topic, **env.model_dump()}), flush=True)  # type: ignore[attr-defined]
+def _emit(topic: str, env: Envelope) -> None:
+    print(json.dumps({"topic": topic, **env.model_dump()}), flush=True)
 
 
 def _send(telemetry: Telemetry, timeout: float, linger: float = 0.0) -> int:

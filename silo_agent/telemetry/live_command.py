@@ -22,7 +22,7 @@ class LiveRequest(BaseModel):
     request_id: Annotated[str, Field(min_length=1, max_length=128)] | None = None
 
 
-def parse_live_request(payload: bytes) -> LiveRequest:
+def parse_live_request(payload: bytes | bytearray) -> LiveRequest:
     """The request, or a ValueError whose message says what is wrong with it in one line."""
     if len(payload) > MAX_COMMAND_BYTES:
         raise ValueError(f"payload too large: {len(payload)} bytes, limit {MAX_COMMAND_BYTES}")

@@ -363,7 +363,8 @@ class Outbox:
         self, after_id: int = 0, limit: int = 100, kinds: tuple[str, ...] | None = None
     ) -> list[Row]:
         """Oldest pending rows with id > after_id (of the given kinds)."""
-        where, args = "id > ?", [after_id]
+        where = "id > ?"
+        args: list[int | str] = [after_id]
         if kinds is not None:
             where += f" AND kind IN ({', '.join('?' * len(kinds))})"
             args.extend(kinds)

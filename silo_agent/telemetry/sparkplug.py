@@ -177,10 +177,10 @@ def finalize(raw: bytes, seq: int, historical: bool) -> bytes:
     return payload.SerializeToString()
 
 
-def is_rebirth_request(raw: bytes) -> bool:
-    """An NCMD asking for `Node Control/Rebirth` = true."""
+def is_rebirth_request(raw: bytes | bytearray) -> bool:
+    """An NCMD asking for `Node Control/Rebirth` = true (raw as paho hands it over)."""
     try:
-        payload = pb.Payload.FromString(raw)
+        payload = pb.Payload.FromString(bytes(raw))
     except DecodeError:
         return False
     return any(m.name == REBIRTH and m.boolean_value for m in payload.metrics)
