@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Literal
 
 import paho.mqtt.client as mqtt
 import structlog
@@ -27,6 +26,7 @@ from silo_agent.telemetry.payloads import (
     MAX_COMMAND_BYTES,
     CommandReplyPayload,
     Envelope,
+    ReplyStatus,
     ScanRequest,
     describe_errors,
 )
@@ -34,7 +34,6 @@ from silo_agent.telemetry.payloads import (
 log = structlog.get_logger(__name__)
 
 MAX_TOPIC_BYTES = 65535  # MQTT's two-byte string length
-ReplyStatus = Literal["accepted", "error", "done"]
 
 
 def reply_topic_problem(topic: str, reserved: Iterable[str], allowed: str) -> str | None:

@@ -70,9 +70,15 @@ class CamerasUsed(_Model):
     failed: list[FailedCamera]
 
 
+# the states and statuses the payloads allow, named for the code that passes them along
+CameraStatus = Literal["ok", "failed", "disabled", "unknown"]
+AgentState = Literal["online", "offline", "stopped"]
+ReplyStatus = Literal["accepted", "error", "done"]
+
+
 class CameraState(_Model):
     serial: str
-    state: Literal["ok", "failed", "disabled", "unknown"]
+    state: CameraStatus
     error: str | None = None
 
 
@@ -113,7 +119,7 @@ class StatusPayload(_Payload):
     """`P/status` (retained): availability of the agent; `offline` is the Last Will."""
 
     schema_: Literal["silo-status/1"] = _schema_field("silo-status/1")
-    state: Literal["online", "offline", "stopped"]
+    state: AgentState
     version: str
     client_id: str
     cameras: list[CameraState]
@@ -179,7 +185,7 @@ class CommandReplyPayload(_Payload):
 
     schema_: Literal["silo-cmd-reply/1"] = _schema_field("silo-cmd-reply/1")
     request_id: str | None
-    status: Literal["accepted", "error", "done"]
+    status: ReplyStatus
     accepted: bool
     error: str | None = None
     scan_id: str | None = None

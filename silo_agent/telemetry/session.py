@@ -12,7 +12,6 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Literal
 
 import structlog
 from paho.mqtt.packettypes import PacketTypes
@@ -24,6 +23,7 @@ from silo_agent.telemetry.link import HEIGHTMAP_CONTENT_TYPE, JSON_LINK, Link
 from silo_agent.telemetry.outbox import Outbox
 from silo_agent.telemetry.payloads import (
     ALARM_TYPES,
+    AgentState,
     CameraState,
     Envelope,
     OutboxState,
@@ -33,9 +33,6 @@ from silo_agent.telemetry.payloads import (
 )
 
 log = structlog.get_logger(__name__)
-
-StatusState = Literal["online", "offline", "stopped"]
-
 
 @dataclass
 class NodeState:
@@ -87,7 +84,7 @@ class Session:
         self._host_online = False
         self._host_ts = -1
 
-    def status_payload(self, state: StatusState, env: Envelope) -> StatusPayload:
+    def status_payload(self, state: AgentState, env: Envelope) -> StatusPayload:
         pending, _ = self.outbox.size()
         with self.state.lock:
             cameras = list(self.state.cameras.values())
@@ -107,7 +104,7 @@ class Session:
             ),
         )
 
-    def status(self, state: StatusState, env: Envelope) -> bytes:
+    def status(self, state: AgentState, env: Envelope) -> bytes:
         return self.status_payload(state, env).to_bytes()
 
     def connected(self, link: Link) -> None:
@@ -192,7 +189,7 @@ class Session:
         link.client.publish(self.me.topic("heightmap/live"), live[0], qos=live[2], retain=False,
                             properties=props)  # fmt: skip
 
-    def _publish_status(self, link: Link, state: StatusState) -> int:
+    def _publish_status(self, link: Link, state: AgentState) -> int:
         payload = self.status(state, self.outbox.next_envelope())
         return link.publish_direct(self.me.topic("status"), payload, retain=True)
 

@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Protocol
 
 import paho.mqtt.client as mqtt
 import structlog
@@ -38,7 +38,7 @@ from silo_agent.telemetry.link import (
     Link,
 )
 from silo_agent.telemetry.outbox import Outbox
-from silo_agent.telemetry.payloads import Envelope
+from silo_agent.telemetry.payloads import AgentState, Envelope
 from silo_agent.telemetry.pump import Pump
 
 log = structlog.get_logger(__name__)
@@ -85,7 +85,7 @@ class Credentials:
 class SessionHooks(Protocol):
     """What the transport asks of the layer above: the messages of each session."""
 
-    def status(self, state: Literal["offline", "stopped"], env: Envelope) -> bytes:
+    def status(self, state: AgentState, env: Envelope) -> bytes:
         """The `P/status` payload in `state` (the Last Will says offline, a stop stopped)."""
 
     def connected(self, link: Link) -> None:
