@@ -137,17 +137,11 @@ class Telemetry:
         check_summary(summary)
         blob = encode_heightmap(heightmap, summary["scan_id"]) if heightmap is not None else None
         envs = [
-            self._enqueue_json("scan", lambda e: scan_payload(e, summary).to_bytes()),
-            self._enqueue_json(
-                "volume", lambda e: volume_payload(e, summary).to_bytes(), retain=True
-            ),
+            self._enqueue("scan", lambda e: scan_payload(e, summary).to_bytes()),
+            self._enqueue("volume", lambda e: volume_payload(e, summary).to_bytes(), retain=True),
         ]
         if blob is not None:
-            envs.append(
-                self._enqueue(
-                    self.topic("heightmap"), lambda _e: blob, retain=True, kind=KIND_BINARY
-                )
-            )
+            envs.append(self._enqueue("heightmap", lambda _e: blob, retain=True, kind=KIND_BINARY))
         with self.state.lock:
             self.state.last_scan_id = summary["scan_id"]
             self.state.status_dirty = True
@@ -162,7 +156,7 @@ class Telemetry:
         `invalid_reason` says why): the retained `P/volume` and `P/heightmap` keep the last
         good values."""
         check_summary(summary)
-        env = self._enqueue_json("scan", lambda e: scan_payload(e, summary).to_bytes())
+        env = self._enqueue("scan", lambda e: scan_payload(e, summary).to_bytes())
         with self.state.lock:
             self.state.last_scan_id = summary["scan_id"]
             self.state.status_dirty = True
@@ -173,8 +167,8 @@ class Telemetry:
         alarm_payload(Envelope.new(1), event)  # validate before anything is committed
         with self.state.lock:  # before the queue: a state snapshot must never be older than it
             self._record_alarm(event["type"], event)
-        env = self._enqueue_json("alarm", lambda e: alarm_payload(e, event).to_bytes())
-        self._enqueue_json(
+        env = self._enqueue("alarm", lambda e: alarm_payload(e, event).to_bytes())
+        self._enqueue(
             f"alarm/{event['type']}", lambda e: alarm_payload(e, event).to_bytes(), retain=True
         )
         if self.spb.enabled:
@@ -280,25 +274,20 @@ class Telemetry:
     # ------------------------------------------------------------ enqueueing
 
     def _enqueue(
-        self,
-        topic: str,
-        build: Callable[[Envelope | None], bytes],
-        *,
-        retain: bool = False,
+        self, suffix: str, build: Callable[[Envelope], bytes], *, retain: bool = False,
         kind: str = KIND_JSON,
     ) -> Envelope:
-        env = self.outbox.enqueue(topic, build, qos=1, retain=retain, latest=retain, kind=kind)
-        assert env is not None
-        return env
+        """Commit `P/<suffix>` (QoS 1; a retained topic keeps only its latest pending row)."""
 
-    def _enqueue_json(
-        self, suffix: str, build: Callable[[Envelope], bytes], *, retain: bool = False
-    ) -> Envelope:
         def build_env(env: Envelope | None) -> bytes:
             assert env is not None
             return build(env)
 
-        return self._enqueue(self.topic(suffix), build_env, retain=retain)
+        env = self.outbox.enqueue(
+            self.topic(suffix), build_env, qos=1, retain=retain, latest=retain, kind=kind
+        )
+        assert env is not None
+        return env
 
     def _enqueue_sparkplug(self, raw: bytes, new_metric: bool) -> None:
         self.outbox.enqueue(
