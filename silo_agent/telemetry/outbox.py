@@ -257,6 +257,11 @@ class Outbox:
                     self._write_state()
             return will
 
+    def near_will_seq(self, will_seq: int) -> bool:
+        """The session whose Last Will carries `will_seq` is about to reach it: a new session
+        must arm a higher one before the `offline` would sort before what was sent."""
+        return self.last_seq >= will_seq - WILL_SEQ_HEADROOM // 10
+
     def _pass_will(self) -> None:
         gap = self._counter("will_seq") - self._counter("seq")
         if gap > 0:
