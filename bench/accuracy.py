@@ -34,7 +34,9 @@ VIEWS = ("A1A5", "A1A4A6", "A1A3A5A7")
 SCENES = ("cone", "piles", "ridge", "crater", "full")
 BAY_SCENES = ("crater", "full")  # 6 x 6 m: the slowest groups, started first
 CALIBS: dict[str, tuple[float, float]] = {
-    "none": (0.0, 0.0), "0.1°/3mm": (0.1, 0.003), "0.5°/1cm": (0.5, 0.01),
+    "none": (0.0, 0.0),
+    "0.1°/3mm": (0.1, 0.003),
+    "0.5°/1cm": (0.5, 0.01),
 }
 PAPER = {"alpha": 39.21, "poisson": 27.89, "hull": 16.29, "bicm": 3.52}  # Table 1 mean error
 
@@ -73,9 +75,17 @@ def _volume(scan: Scan, method: str, step: float) -> float | None:
     return reconstruct(scan, settings).volume_m3
 
 
-def run_group(scene_name: str, views: str, seeds: Sequence[int], calibs: Sequence[str],
-              steps: Sequence[float], methods: Sequence[str], budget_s: float,
-              slow_seeds: int, workdir: str) -> list[Row]:
+def run_group(
+    scene_name: str,
+    views: str,
+    seeds: Sequence[int],
+    calibs: Sequence[str],
+    steps: Sequence[float],
+    methods: Sequence[str],
+    budget_s: float,
+    slow_seeds: int,
+    workdir: str,
+) -> list[Row]:
     """Every scan of one (scene, views): simulate once per (seed, calib), run every method.
 
     alpha and poisson run only on seeds below `slow_seeds`. A slow method that overruns the
@@ -88,21 +98,40 @@ def run_group(scene_name: str, views: str, seeds: Sequence[int], calibs: Sequenc
     rows: list[Row] = []
     for seed in seeds:
         for calib in calibs:
-            scan = simulate(scene, split_views(views), seed=seed, calib_error=CALIBS[calib],
-                            rig=rig)
+            scan = simulate(
+                scene, split_views(views), seed=seed, calib_error=CALIBS[calib], rig=rig
+            )
             truth = float(scan.extra["truth"]["volume_m3"])
             for method in methods:
                 if method in SLOW and seed >= slow_seeds:
                     continue
                 for step in sorted(steps, reverse=True):
-                    rows.append(_one(scan, truth, (scene_name, views, seed, calib), method,
-                                     step, too_slow, budget_s, Path(workdir)))
+                    rows.append(
+                        _one(
+                            scan,
+                            truth,
+                            (scene_name, views, seed, calib),
+                            method,
+                            step,
+                            too_slow,
+                            budget_s,
+                            Path(workdir),
+                        )
+                    )
             print(f"  {scene_name} {views} seed {seed} calib {calib}: done", file=sys.stderr)
     return rows
 
 
-def _one(scan: Scan, truth: float, key: tuple[str, str, int, str], method: str, step: float,
-         too_slow: dict[str, float], budget_s: float, workdir: Path) -> Row:
+def _one(
+    scan: Scan,
+    truth: float,
+    key: tuple[str, str, int, str],
+    method: str,
+    step: float,
+    too_slow: dict[str, float],
+    budget_s: float,
+    workdir: Path,
+) -> Row:
     if method in too_slow and step <= too_slow[method] + 1e-12:
         return Row(*key, method, step, truth, None, None, "skipped")
     start = time.perf_counter()
@@ -119,8 +148,15 @@ def _one(scan: Scan, truth: float, key: tuple[str, str, int, str], method: str, 
     except Exception as error:  # a failing baseline is a result, not a crash
         print(f"  {key} {method} {step}: {error!r}", file=sys.stderr)
         return Row(*key, method, step, truth, None, None, "failed")
-    return Row(*key, method, step, truth, volume, time.perf_counter() - start,
-               "ok" if volume is not None else "failed")
+    return Row(
+        *key,
+        method,
+        step,
+        truth,
+        volume,
+        time.perf_counter() - start,
+        "ok" if volume is not None else "failed",
+    )
 
 
 # ---------------------------------------------------------------- report
@@ -155,8 +191,9 @@ def _stats_cells(rows: list[Row]) -> list[str]:
     ]
 
 
-def paper_table(rows: list[Row], methods: Sequence[str], steps: Sequence[float],
-                scene: str, views: str) -> list[str]:
+def paper_table(
+    rows: list[Row], methods: Sequence[str], steps: Sequence[float], scene: str, views: str
+) -> list[str]:
     """Table 1's shape: volume per method and step (mean over seeds), truth, error rows."""
     sel = [r for r in rows if r.scene == scene and r.views == views and r.calib == "none"]
     seeds = sorted({r.seed for r in sel})
@@ -165,7 +202,8 @@ def paper_table(rows: list[Row], methods: Sequence[str], steps: Sequence[float],
         "",
         f"Volume in m³, mean over seeds {', '.join(map(str, seeds))}; errors are |volume - true|"
         " / true over every step and seed. Paper's mean error: "
-        + ", ".join(f"{m} {v} %" for m, v in PAPER.items()) + ".",
+        + ", ".join(f"{m} {v} %" for m, v in PAPER.items())
+        + ".",
         "",
         "| grid step (m) | " + " | ".join(methods) + " |",
         "|---" * (len(methods) + 1) + "|",
@@ -173,16 +211,20 @@ def paper_table(rows: list[Row], methods: Sequence[str], steps: Sequence[float],
     for step in steps:
         cells = []
         for m in methods:
-            vols = [r.volume for r in sel if r.method == m and r.step == step
-                    and r.volume is not None]
+            vols = [
+                r.volume for r in sel if r.method == m and r.step == step and r.volume is not None
+            ]
             missing = any(r.status != "ok" for r in sel if r.method == m and r.step == step)
             cell = fmt(float(np.mean(vols))) if vols else "—"
             cells.append(cell + ("¹" if missing else ""))
         lines.append(f"| grid_{step:g} | " + " | ".join(cells) + " |")
     truth = sel[0].truth if sel else float("nan")
     lines.append("| true volume | " + " | ".join(fmt(truth, ".3f") for _ in methods) + " |")
-    for name, fn in (("maximum error", max), ("minimum error", min),
-                     ("average error", lambda e: float(np.mean(e)))):
+    for name, fn in (
+        ("maximum error", max),
+        ("minimum error", min),
+        ("average error", lambda e: float(np.mean(e))),
+    ):
         cells = []
         for m in methods:
             errors = _abs_errors(r for r in sel if r.method == m)
@@ -199,14 +241,18 @@ def summary_table(rows: list[Row], methods: Sequence[str], title: str) -> list[s
         if not at:
             continue
         lines += [
-            f"Calibration error: **{calib}**", "",
+            f"Calibration error: **{calib}**",
+            "",
             "| views | method | mean abs err % | max abs err % | mean spread pp | max spread pp |",
             "|---|---|---|---|---|---|",
         ]
         for n in sorted({r.n_views for r in at}):
             group = [r for r in at if r.n_views == n]
-            means = {m: np.mean(e) for m in methods if (e := _abs_errors(
-                r for r in group if r.method == m))}
+            means = {
+                m: np.mean(e)
+                for m in methods
+                if (e := _abs_errors(r for r in group if r.method == m))
+            }
             best = min(means, key=lambda m: means[m]) if means else None
             for m in methods:
                 cells = _stats_cells([r for r in group if r.method == m])
@@ -226,13 +272,13 @@ def skipped_note(rows: list[Row], budget_s: float) -> list[str]:
     if not counts:
         return ["All runs produced a volume; nothing was skipped.", ""]
     lines = [
-        f"¹ Some runs have no volume and are left out of that cell's statistics (\"—\" where"
+        f'¹ Some runs have no volume and are left out of that cell\'s statistics ("—" where'
         f" none is left). Slow methods get {budget_s:g} s per run; one that overruns at a step"
         " is killed and not tried again at that step or finer ones for the same scene and"
-        " views (\"skipped\"). Missing runs:", "",
+        ' views ("skipped"). Missing runs:',
+        "",
     ]
-    lines += [f"- {m} at {s:g} m: {n} {status}"
-              for (m, s, status), n in sorted(counts.items())]
+    lines += [f"- {m} at {s:g} m: {n} {status}" for (m, s, status), n in sorted(counts.items())]
     return [*lines, ""]
 
 
@@ -242,15 +288,19 @@ def timing_table(rows: list[Row], methods: Sequence[str], steps: Sequence[float]
         "## (d) Run time per method and step",
         "",
         "Mean seconds per run that produced a volume, all scans; timings are noisy when the"
-        " machine is shared.", "",
+        " machine is shared.",
+        "",
         "| method | " + " | ".join(f"{s:g} m" for s in steps) + " |",
         "|---" * (len(steps) + 1) + "|",
     ]
     for m in methods:
         cells = []
         for step in steps:
-            secs = [r.seconds for r in rows if r.method == m and r.step == step
-                    and r.status == "ok" and r.seconds is not None]
+            secs = [
+                r.seconds
+                for r in rows
+                if r.method == m and r.step == step and r.status == "ok" and r.seconds is not None
+            ]
             cells.append(fmt(float(np.mean(secs)), ".2f") if secs else "—")
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return [*lines, ""]
@@ -266,8 +316,9 @@ def plot(rows: list[Row], methods: Sequence[str], steps: Sequence[float], path: 
 
     base = [r for r in rows if r.calib == "none"] or rows
     counts = sorted({r.n_views for r in base})
-    fig, axes = plt.subplots(1, len(counts), figsize=(5 * len(counts), 4), squeeze=False,
-                             sharey=True)
+    fig, axes = plt.subplots(
+        1, len(counts), figsize=(5 * len(counts), 4), squeeze=False, sharey=True
+    )
     for ax, n in zip(axes[0], counts, strict=True):
         for m in methods:
             xs, ys = [], []
@@ -276,8 +327,13 @@ def plot(rows: list[Row], methods: Sequence[str], steps: Sequence[float], path: 
                 if runs and _missing(runs) == 0:  # a partial mean would mix other scenes
                     xs.append(step)
                     ys.append(float(np.mean(_abs_errors(runs))))
-            ax.plot(xs, ys, marker="D" if m == "bicm" else "o", label=m,
-                    linewidth=2.5 if m == "bicm" else 1.2)
+            ax.plot(
+                xs,
+                ys,
+                marker="D" if m == "bicm" else "o",
+                label=m,
+                linewidth=2.5 if m == "bicm" else 1.2,
+            )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xticks(list(steps), [f"{s:g}" for s in steps])
@@ -287,19 +343,23 @@ def plot(rows: list[Row], methods: Sequence[str], steps: Sequence[float], path: 
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("mean |volume error| (%)")
     axes[0][-1].legend(fontsize=8)
-    fig.suptitle("Volume error against grid step, all scenes and seeds (a method is drawn"
-                 " only at steps where every run finished)", fontsize=9)
+    fig.suptitle(
+        "Volume error against grid step, all scenes and seeds (a method is drawn"
+        " only at steps where every run finished)",
+        fontsize=9,
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
 
 
-def report(rows: list[Row], args: argparse.Namespace, methods: Sequence[str],
-           elapsed_s: float) -> str:
+def report(
+    rows: list[Row], args: argparse.Namespace, methods: Sequence[str], elapsed_s: float
+) -> str:
     scenes, views = args.scenes, args.views
     paper_scene = "cone" if "cone" in scenes else scenes[0]
     paper_views = "A1A5" if "A1A5" in views else views[0]
-    note = ("QUICK RUN (smoke test subset, not the benchmark result); " if args.quick else "")
+    note = "QUICK RUN (smoke test subset, not the benchmark result); " if args.quick else ""
     lines = header(
         "Accuracy benchmark (paper Table 1 in simulation)",
         note + f"scenes {', '.join(scenes)}; views {', '.join(views)}; seeds"
@@ -308,11 +368,12 @@ def report(rows: list[Row], args: argparse.Namespace, methods: Sequence[str],
         f" {elapsed_s / 60:.1f} min",
     )
     lines += [
-        "Errors are signed (volume - true) / true in %; \"abs err\" is its absolute value."
-        " \"spread\" is, per scan and method, the largest minus the smallest signed error across"
+        'Errors are signed (volume - true) / true in %; "abs err" is its absolute value.'
+        ' "spread" is, per scan and method, the largest minus the smallest signed error across'
         " the grid steps (percentage points). `cloudcompare` is CloudCompare's 2.5D volume"
         " (`-VOLUME -GRID_STEP s -CONST_HEIGHT floor_z`, empty cells left empty) on the fused,"
-        " cropped cloud. Best mean per group in bold.", "",
+        " cropped cloud. Best mean per group in bold.",
+        "",
     ]
     lines += paper_table(rows, methods, args.steps, paper_scene, paper_views)
     lines += summary_table(rows, methods, "## (b) Summary per view count, all scenes and seeds")
@@ -325,9 +386,12 @@ def report(rows: list[Row], args: argparse.Namespace, methods: Sequence[str],
     slow = [m for m in methods if m in SLOW]
     if slow and args.slow_seeds < args.seeds:
         seeds = ", ".join(map(str, range(args.slow_seeds)))
-        lines += [f"{' and '.join(slow)} ran on seed(s) {seeds}"
-                  f" only (`--slow-seeds {args.slow_seeds}`), to keep the run short; their"
-                  " statistics cover those scans.", ""]
+        lines += [
+            f"{' and '.join(slow)} ran on seed(s) {seeds}"
+            f" only (`--slow-seeds {args.slow_seeds}`), to keep the run short; their"
+            " statistics cover those scans.",
+            "",
+        ]
     return "\n".join(lines)
 
 
@@ -335,30 +399,50 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", type=lambda s: s.split(","), default=list(SCENES))
     p.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 (default 2)")
-    p.add_argument("--steps", type=lambda s: [float(x) for x in s.split(",")],
-                   default=list(STEPS))
-    p.add_argument("--methods", type=lambda s: s.split(","), default=[*METHODS, CC],
-                   help=f"comma list of {', '.join([*METHODS, CC])}")
+    p.add_argument("--steps", type=lambda s: [float(x) for x in s.split(",")], default=list(STEPS))
+    p.add_argument(
+        "--methods",
+        type=lambda s: s.split(","),
+        default=[*METHODS, CC],
+        help=f"comma list of {', '.join([*METHODS, CC])}",
+    )
     p.add_argument("--views", type=lambda s: s.split(","), default=list(VIEWS))
-    p.add_argument("--calibs", type=lambda s: s.split(","), default=list(CALIBS),
-                   help=f"comma list of {', '.join(CALIBS)}")
-    p.add_argument("--budget", type=float, default=10.0,
-                   help="seconds per alpha/poisson run before it is killed (default 10)")
-    p.add_argument("--slow-seeds", type=int, default=1,
-                   help="run alpha and poisson on seeds 0..K-1 only (default 1: they take"
-                   " most of the time)")
+    p.add_argument(
+        "--calibs",
+        type=lambda s: s.split(","),
+        default=list(CALIBS),
+        help=f"comma list of {', '.join(CALIBS)}",
+    )
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=10.0,
+        help="seconds per alpha/poisson run before it is killed (default 10)",
+    )
+    p.add_argument(
+        "--slow-seeds",
+        type=int,
+        default=1,
+        help="run alpha and poisson on seeds 0..K-1 only (default 1: they take most of the time)",
+    )
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-    p.add_argument("--quick", action="store_true",
-                   help="smoke run: cone and crater, seed 0, A1A5 and A1A3A5A7, three steps,"
-                   " no error and 0.5°/1cm")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: cone and crater, seed 0, A1A5 and A1A3A5A7, three steps,"
+        " no error and 0.5°/1cm",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/results/accuracy.md"))
     p.add_argument("--plot", type=Path, default=Path("bench/results/accuracy.png"))
     args = p.parse_args(argv)
     if args.quick:
         args.scenes, args.seeds, args.views = ["cone", "crater"], 1, ["A1A5", "A1A3A5A7"]
         args.steps, args.calibs = [0.1, 0.05, 0.025], ["none", "0.5°/1cm"]
-    unknown = ({*args.methods} - {*METHODS, CC}) | ({*args.calibs} - {*CALIBS}) | (
-        {*args.scenes} - {*SCENES})
+    unknown = (
+        ({*args.methods} - {*METHODS, CC})
+        | ({*args.calibs} - {*CALIBS})
+        | ({*args.scenes} - {*SCENES})
+    )
     if unknown:
         p.error(f"unknown method, calibration or scene: {', '.join(sorted(unknown))}")
     args.steps = sorted(args.steps, reverse=True)
@@ -370,13 +454,27 @@ def main(argv: Sequence[str] | None = None) -> None:
     methods = [m for m in [*METHODS, CC] if m in args.methods]
     start = time.perf_counter()
     rows: list[Row] = []
-    with tempfile.TemporaryDirectory(prefix="silo-bench-") as workdir, \
-            ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        groups = sorted(((scene, views) for scene in args.scenes for views in args.views),
-                        key=lambda g: (g[0] not in BAY_SCENES, -len(g[1])))  # longest first
+    with (
+        tempfile.TemporaryDirectory(prefix="silo-bench-") as workdir,
+        ProcessPoolExecutor(max_workers=args.jobs) as pool,
+    ):
+        groups = sorted(
+            ((scene, views) for scene in args.scenes for views in args.views),
+            key=lambda g: (g[0] not in BAY_SCENES, -len(g[1])),
+        )  # longest first
         futures = [
-            pool.submit(run_group, scene, views, range(args.seeds), args.calibs, args.steps,
-                        methods, args.budget, args.slow_seeds, workdir)
+            pool.submit(
+                run_group,
+                scene,
+                views,
+                range(args.seeds),
+                args.calibs,
+                args.steps,
+                methods,
+                args.budget,
+                args.slow_seeds,
+                workdir,
+            )
             for scene, views in groups
         ]
         for future in futures:

@@ -33,9 +33,11 @@ T = TypeVar("T")
 
 def git_commit() -> str:
     """Short commit of the working tree, with `-dirty` when it has local changes."""
+
     def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True,
-                              check=False).stdout.strip()
+        return subprocess.run(
+            ["git", *args], cwd=REPO, capture_output=True, text=True, check=False
+        ).stdout.strip()
 
     commit = git("rev-parse", "--short", "HEAD") or "unknown"
     return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
@@ -50,16 +52,20 @@ def machine() -> str:
         model = found.group(1).strip() if found else model
     except (OSError, subprocess.CalledProcessError):
         pass
-    return (f"{model}, {os.cpu_count()} logical cores, Python {platform.python_version()},"
-            f" {platform.system()} {platform.release()}")
+    return (
+        f"{model}, {os.cpu_count()} logical cores, Python {platform.python_version()},"
+        f" {platform.system()} {platform.release()}"
+    )
 
 
 def header(title: str, note: str = "") -> list[str]:
     """Markdown title and provenance lines: command, date, commit, machine."""
-    command = "PYTHONPATH=. python " + shlex.join(["bench/" + Path(sys.argv[0]).name,
-                                                   *sys.argv[1:]])
+    command = "PYTHONPATH=. python " + shlex.join(
+        ["bench/" + Path(sys.argv[0]).name, *sys.argv[1:]]
+    )
     lines = [
-        f"# {title}", "",
+        f"# {title}",
+        "",
         f"- command: `{command}`",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- commit: `{git_commit()}`",
@@ -89,16 +95,28 @@ class CCResult:
     wall_s: float
 
 
-def cloudcompare_volume(ply: Path, step: float, floor_z: float,
-                        timeout_s: float = 300.0) -> CCResult:
+def cloudcompare_volume(
+    ply: Path, step: float, floor_z: float, timeout_s: float = 300.0
+) -> CCResult:
     """CloudCompare's 2.5D volume of a PLY above a constant floor, headless.
 
     CloudCompare writes `VolumeCalculationReport_<date>.txt` next to the cloud, named to the
     minute, so the cloud sits alone in a fresh directory and the report is read from there.
     """
     env = os.environ | {"QT_QPA_PLATFORM": "offscreen"}
-    command = [CLOUDCOMPARE, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(ply), "-VOLUME",
-               "-GRID_STEP", f"{step:g}", "-CONST_HEIGHT", f"{floor_z:g}"]
+    command = [
+        CLOUDCOMPARE,
+        "-SILENT",
+        "-AUTO_SAVE",
+        "OFF",
+        "-O",
+        str(ply),
+        "-VOLUME",
+        "-GRID_STEP",
+        f"{step:g}",
+        "-CONST_HEIGHT",
+        f"{floor_z:g}",
+    ]
     for old in ply.parent.glob("VolumeCalculationReport*.txt"):
         old.unlink()
     start = time.perf_counter()

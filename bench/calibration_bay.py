@@ -52,9 +52,11 @@ from silo_agent.sim.simulate import SimRig, simulate
 # workflow: (calibration scan, the calibration's settings); "floor only": the same leveling
 # with no camera pair registered (min_overlap = 1), to show what the registration adds;
 # with --pool N also "pile, N scans pooled": the bay-cone scan and N - 1 more frames of it
-WORKFLOWS = {"empty-bay": ("empty", CalibrationConfig()),
-             "empty-bay, floor only": ("empty", CalibrationConfig(min_overlap=1.0)),
-             "pile": ("bay-cone", CalibrationConfig())}
+WORKFLOWS = {
+    "empty-bay": ("empty", CalibrationConfig()),
+    "empty-bay, floor only": ("empty", CalibrationConfig(min_overlap=1.0)),
+    "pile": ("bay-cone", CalibrationConfig()),
+}
 
 
 def pooled_workflow(n: int) -> str:
@@ -89,12 +91,20 @@ class Run:
 
 
 def _pairs(calibration: Calibration) -> str:
-    return ", ".join(f"{p.a[4:]}-{p.b[4:]} {p.fitness:.2f}{'' if p.used else ' (unused)'}"
-                     for p in calibration.pairs)  # fmt: skip
+    return ", ".join(
+        f"{p.a[4:]}-{p.b[4:]} {p.fitness:.2f}{'' if p.used else ' (unused)'}"
+        for p in calibration.pairs
+    )
 
 
-def one(empty: SimRig, cone: SimRig, views: str, seed: int, settings: ReconstructionConfig,
-        pool: int = 1) -> Run:  # fmt: skip
+def one(
+    empty: SimRig,
+    cone: SimRig,
+    views: str,
+    seed: int,
+    settings: ReconstructionConfig,
+    pool: int = 1,
+) -> Run:
     empty_scan = simulate(empty.scene, VIEWS[views], seed, ERROR, rig=empty)
     cone_scans = repeated_scans(cone, views, seed, pool)  # the first is simulate(...)'s scan
     cone_scan = cone_scans[0]
@@ -127,15 +137,26 @@ def one(empty: SimRig, cone: SimRig, views: str, seed: int, settings: Reconstruc
         seconds = time.perf_counter() - started
         poses = result.extrinsics()
         vertical, horizontal, dilation, height = split_errors(poses, truth, pivot)
-        on_cone = scan_residuals(with_extrinsics(cone_scan.cameras, poses), cone_scan.site,
-                                 0.02, config)
+        on_cone = scan_residuals(
+            with_extrinsics(cone_scan.cameras, poses), cone_scan.site, 0.02, config
+        )
         outcomes[workflow] = Outcome(
-            pp(volume(poses)), pp(volume(vertical)), pp(volume(horizontal)), dilation, height,
-            floor_fit_height(scan, truth, pivot), max_residual(result.residual_before),
-            max_residual(result.residual_after), max_residual(on_cone), _pairs(result), seconds)
+            pp(volume(poses)),
+            pp(volume(vertical)),
+            pp(volume(horizontal)),
+            dilation,
+            height,
+            floor_fit_height(scan, truth, pivot),
+            max_residual(result.residual_before),
+            max_residual(result.residual_after),
+            max_residual(on_cone),
+            _pairs(result),
+            seconds,
+        )
     before = scan_residuals(cone_scan.cameras, cone_scan.site, 0.02, CalibrationConfig())
-    return Run(views, seed, 100.0 * (perfect / exact - 1), pp(volume(None)),
-               max_residual(before), outcomes)
+    return Run(
+        views, seed, 100.0 * (perfect / exact - 1), pp(volume(None)), max_residual(before), outcomes
+    )
 
 
 def rms(values: list[float]) -> float:
@@ -143,35 +164,41 @@ def rms(values: list[float]) -> float:
 
 
 def report(runs: list[Run]) -> list[str]:
-    lines = ["## Volume after calibration, by workflow", "",
-             "Volume of the bay-cone scan in percentage points of its exact volume, against the "
-             "same scan reconstructed with the true extrinsics ('perfect'). *empty-bay*: "
-             "`calibrate --floor` on a scan of the empty bay by the same rig; *empty-bay, floor "
-             "only*: the same with no camera pair registered (`min_overlap = 1`: leveling on the "
-             "floor, the rig's yaw and plan position kept as configured); *pile*: on the bay-cone "
-             "scan itself; *pile, N scans pooled* (`--pool N`): on the bay-cone scan and N - 1 "
-             "further frames of it pooled (`pool_scans`). Horizontal / vertical part: the scan "
-             "reconstructed with only that part of each camera's remaining pose error kept (as in "
-             "calibration.md). Dilation: mean radial error of the cameras' plan positions (+: too "
-             "far out). Height: mean height error of the cameras' views at the pile's centre; "
-             "floor fit on true poses: the same for the floor planes `calibrate` fits to each "
-             "camera's points of the calibration scan placed with its true extrinsic (the "
-             "leveling's own error).", "",
-             f"| views | workflow | within {TARGET_PP} pp of perfect | mean abs (pp) "
-             "| worst (pp) | mean abs vertical part (pp) | mean abs horizontal part (pp) "
-             "| rms dilation (mm) | mean / rms height (mm) | mean / rms floor fit on true poses "
-             "(mm) | worst residual, calibration scan after (mm) "
-             "| worst residual, bay-cone scan after (mm) | calibrate time (s) |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
-             "| ---: |"]
+    lines = [
+        "## Volume after calibration, by workflow",
+        "",
+        "Volume of the bay-cone scan in percentage points of its exact volume, against the "
+        "same scan reconstructed with the true extrinsics ('perfect'). *empty-bay*: "
+        "`calibrate --floor` on a scan of the empty bay by the same rig; *empty-bay, floor "
+        "only*: the same with no camera pair registered (`min_overlap = 1`: leveling on the "
+        "floor, the rig's yaw and plan position kept as configured); *pile*: on the bay-cone "
+        "scan itself; *pile, N scans pooled* (`--pool N`): on the bay-cone scan and N - 1 "
+        "further frames of it pooled (`pool_scans`). Horizontal / vertical part: the scan "
+        "reconstructed with only that part of each camera's remaining pose error kept (as in "
+        "calibration.md). Dilation: mean radial error of the cameras' plan positions (+: too "
+        "far out). Height: mean height error of the cameras' views at the pile's centre; "
+        "floor fit on true poses: the same for the floor planes `calibrate` fits to each "
+        "camera's points of the calibration scan placed with its true extrinsic (the "
+        "leveling's own error).",
+        "",
+        f"| views | workflow | within {TARGET_PP} pp of perfect | mean abs (pp) "
+        "| worst (pp) | mean abs vertical part (pp) | mean abs horizontal part (pp) "
+        "| rms dilation (mm) | mean / rms height (mm) | mean / rms floor fit on true poses "
+        "(mm) | worst residual, calibration scan after (mm) "
+        "| worst residual, bay-cone scan after (mm) | calibrate time (s) |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+        "| ---: |",
+    ]
     for views in VIEWS:
         rows = [r for r in runs if r.views == views]
         if not rows:
             continue
         before = np.abs([r.before_pp for r in rows])
-        lines.append(f"| {views} | before calibration | {int((before <= TARGET_PP).sum())} of "
-                     f"{len(rows)} | {before.mean():.2f} | {before.max():.2f} | | | | | | | "
-                     f"{max(r.residual_cone_before_m for r in rows) * 1000:.1f} | |")
+        lines.append(
+            f"| {views} | before calibration | {int((before <= TARGET_PP).sum())} of "
+            f"{len(rows)} | {before.mean():.2f} | {before.max():.2f} | | | | | | | "
+            f"{max(r.residual_cone_before_m for r in rows) * 1000:.1f} | |"
+        )
         for workflow in rows[0].outcomes:
             got = [r.outcomes[workflow] for r in rows]
             after = np.abs([o.after_pp for o in got])
@@ -187,14 +214,18 @@ def report(runs: list[Run]) -> list[str]:
                 f"{rms([o.floor_fit_mm for o in got]):.2f} "
                 f"| {max(o.residual_after_m for o in got) * 1000:.1f} "
                 f"| {max(o.residual_cone_m for o in got) * 1000:.1f} "
-                f"| {np.mean([o.seconds for o in got]):.1f} |")  # fmt: skip
-    lines += ["", "### Every scan", "",
-              "| views | seed | perfect (% of truth) | before (pp) | workflow | after (pp) "
-              "| vertical part (pp) | horizontal part (pp) | dilation (mm) | height (mm) "
-              "| residual calibration scan before / after (mm) | residual bay-cone after (mm) "
-              "| ICP pairs (fitness) |",
-              "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
-              "| --- |"]
+                f"| {np.mean([o.seconds for o in got]):.1f} |"
+            )
+    lines += [
+        "",
+        "### Every scan",
+        "",
+        "| views | seed | perfect (% of truth) | before (pp) | workflow | after (pp) "
+        "| vertical part (pp) | horizontal part (pp) | dilation (mm) | height (mm) "
+        "| residual calibration scan before / after (mm) | residual bay-cone after (mm) "
+        "| ICP pairs (fitness) |",
+        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
     for r in runs:
         for workflow, o in r.outcomes.items():
             lines.append(
@@ -202,17 +233,24 @@ def report(runs: list[Run]) -> list[str]:
                 f"| {workflow} | {o.after_pp:+.2f} | {o.vertical_pp:+.2f} "
                 f"| {o.horizontal_pp:+.2f} | {o.dilation_mm:+.1f} | {o.height_mm:+.2f} "
                 f"| {o.residual_before_m * 1000:.1f} / {o.residual_after_m * 1000:.1f} "
-                f"| {o.residual_cone_m * 1000:.1f} | {o.pairs} |")
+                f"| {o.residual_cone_m * 1000:.1f} | {o.pairs} |"
+            )
     return [*lines, ""]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--pool", type=int, default=1, metavar="N",
-                        help="also calibrate on N frames of the bay-cone scan pooled")
-    parser.add_argument("--views", default=",".join(VIEWS),
-                        help=f"view sets, of {', '.join(VIEWS)}")
+    parser.add_argument(
+        "--pool",
+        type=int,
+        default=1,
+        metavar="N",
+        help="also calibrate on N frames of the bay-cone scan pooled",
+    )
+    parser.add_argument(
+        "--views", default=",".join(VIEWS), help=f"view sets, of {', '.join(VIEWS)}"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench/results/calibration_bay.md"))
     args = parser.parse_args()
     chosen = args.views.split(",")
@@ -225,18 +263,25 @@ def main() -> None:
         for seed in range(args.seeds):
             r = one(empty, cone, views, seed, settings, args.pool)
             runs.append(r)
-            print(f"{views} seed {seed}: perfect {r.perfect_pct:+.2f} %, before "
-                  f"{r.before_pp:+.2f} pp; "
-                  + "; ".join(f"{w}: after {o.after_pp:+.2f} pp (h {o.horizontal_pp:+.2f}, "
-                              f"v {o.vertical_pp:+.2f}), residual {o.residual_after_m * 1000:.1f}"
-                              f" mm, pairs {o.pairs}" for w, o in r.outcomes.items()),
-                  flush=True)
-    lines = header("Calibration on a walled bay",
-                   f"injected error per camera: {ERROR[0]} deg about a random axis and "
-                   f"{ERROR[1] * 100:g} cm in a random direction; wall layout (cameras at "
-                   f"z = {cone.scene.wall_camera_z} m on the walls of the "
-                   f"{2 * cone.scene.wall_half_m:g} m bay); grid 2 cm; BICM defaults; "
-                   f"calibration defaults")
+            print(
+                f"{views} seed {seed}: perfect {r.perfect_pct:+.2f} %, before "
+                f"{r.before_pp:+.2f} pp; "
+                + "; ".join(
+                    f"{w}: after {o.after_pp:+.2f} pp (h {o.horizontal_pp:+.2f}, "
+                    f"v {o.vertical_pp:+.2f}), residual {o.residual_after_m * 1000:.1f}"
+                    f" mm, pairs {o.pairs}"
+                    for w, o in r.outcomes.items()
+                ),
+                flush=True,
+            )
+    lines = header(
+        "Calibration on a walled bay",
+        f"injected error per camera: {ERROR[0]} deg about a random axis and "
+        f"{ERROR[1] * 100:g} cm in a random direction; wall layout (cameras at "
+        f"z = {cone.scene.wall_camera_z} m on the walls of the "
+        f"{2 * cone.scene.wall_half_m:g} m bay); grid 2 cm; BICM defaults; "
+        f"calibration defaults",
+    )
     lines += report(runs)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))

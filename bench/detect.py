@@ -76,11 +76,12 @@ def stand_in_model(path: Path, seed: int = 0) -> Path:
         helper.make_tensor("table", TensorProto.FLOAT, list(out.shape), out.ravel().tolist()),
     ]
     graph = helper.make_graph(
-        nodes, "stand-in",
+        nodes,
+        "stand-in",
         [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, 640, 640])],
         [helper.make_tensor_value_info("output0", TensorProto.FLOAT, list(out.shape))],
         inits,
-    )  # fmt: skip
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     helper.set_model_props(model, {"names": "{0: 'pile', 1: 'robot'}", "imgsz": "[640, 640]"})
@@ -92,15 +93,22 @@ def machine() -> str:
     cpu = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.exists():
-        names = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
-                 if ln.startswith("model name")]  # fmt: skip
+        names = [
+            ln.split(":", 1)[1].strip()
+            for ln in cpuinfo.read_text().splitlines()
+            if ln.startswith("model name")
+        ]
         cpu = names[0] if names else cpu
     return f"{cpu}, {os.cpu_count()} logical CPUs, {platform.system()} {platform.release()}"
 
 
 def commit() -> str:
-    done = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
-                          capture_output=True, text=True, check=False)  # fmt: skip
+    done = subprocess.run(
+        ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     return done.stdout.strip() or "unknown"
 
 
@@ -119,15 +127,21 @@ def main() -> None:
         if result.heightmap is None:
             raise RuntimeError(f"no height map at a {step} m step: {result.invalid_reason}")
         hm = result.heightmap
-        base = base_surface(grid_of(hm), hm.heights.astype(float), scan.site.base,
-                            scan.site.floor_z)  # fmt: skip
+        base = base_surface(
+            grid_of(hm), hm.heights.astype(float), scan.site.base, scan.site.floor_z
+        )
 
         def geometric(hm=hm, base=base) -> list:
             return detect_piles(Surface.of(hm, base, scan.site.floor_z, None), detection)
 
         piles = geometric()
-        rows.append((f"geometric, {step * 100:g} cm grid ({hm.shape[0]} x {hm.shape[1]} cells)",
-                     median_ms(geometric, args.runs), len(piles)))  # fmt: skip
+        rows.append(
+            (
+                f"geometric, {step * 100:g} cm grid ({hm.shape[0]} x {hm.shape[1]} cells)",
+                median_ms(geometric, args.runs),
+                len(piles),
+            )
+        )
 
     with tempfile.TemporaryDirectory() as tmp:
         model = YoloModel(stand_in_model(Path(tmp) / "stand-in.onnx"))
@@ -140,12 +154,18 @@ def main() -> None:
 
         piles = onnx_path()
         points = sum(len(c.points) for c in scan.cameras)
-        rows.append((f"onnx around the model, 4 cameras, {points} points, 1 cm grid",
-                     median_ms(onnx_path, max(3, args.runs // 4)), len(piles)))  # fmt: skip
+        rows.append(
+            (
+                f"onnx around the model, 4 cameras, {points} points, 1 cm grid",
+                median_ms(onnx_path, max(3, args.runs // 4)),
+                len(piles),
+            )
+        )
         single = scan.cameras[0]
         one = median_ms(lambda: locate(model, [single], 0.5, 0.45), args.runs)
-        rows.append(("onnx, one camera: image, letterbox, run, decode, NMS, box -> point", one,
-                     None))  # fmt: skip
+        rows.append(
+            ("onnx, one camera: image, letterbox, run, decode, NMS, box -> point", one, None)
+        )
 
     command = "PYTHONPATH=. python " + shlex.join(["bench/detect.py", *sys.argv[1:]])
     lines = [

@@ -35,14 +35,27 @@ def rendered(rig: RobotRig, count: int) -> list[list[DepthFrame]]:
     out = []
     for index in range(count):
         frames = rig.frames(index * 0.5, index)
-        out.append([DepthFrame(v.serial, f.depth, f.depth_unit_m, f.intrinsics.fx,
-                               f.intrinsics.fy, f.intrinsics.ppx, f.intrinsics.ppy, v.nominal)
-                    for v, f in zip(rig.views, frames, strict=True)])  # fmt: skip
+        out.append(
+            [
+                DepthFrame(
+                    v.serial,
+                    f.depth,
+                    f.depth_unit_m,
+                    f.intrinsics.fx,
+                    f.intrinsics.fy,
+                    f.intrinsics.ppx,
+                    f.intrinsics.ppy,
+                    v.nominal,
+                )
+                for v, f in zip(rig.views, frames, strict=True)
+            ]
+        )
     return out
 
 
-def timed(frames: list[list[DepthFrame]], settings: LiveConfig, grid: Grid,
-          ceiling_z: float | None) -> tuple[list[float], list[float], list[int]]:  # fmt: skip
+def timed(
+    frames: list[list[DepthFrame]], settings: LiveConfig, grid: Grid, ceiling_z: float | None
+) -> tuple[list[float], list[float], list[int]]:
     """Per map: whole time (update + encode), encode alone, payload bytes. The first map
     (every cell new, ray tables built) is timed too but reported apart by the caller."""
     live = LiveMap(grid, settings, ceiling_z)
@@ -52,7 +65,9 @@ def timed(frames: list[list[DepthFrame]], settings: LiveConfig, grid: Grid,
         update = live.update(per_camera, index * 0.5)
         mid = time.perf_counter()
         payload = encode_live_heightmap(
-            update.heightmap, "bench", update.sequence,
+            update.heightmap,
+            "bench",
+            update.sequence,
             {"robots": [r.to_json() for r in update.robots]},
             {"changed": update.changed, "held": update.held},
         )
@@ -79,10 +94,12 @@ def main() -> None:
     note = f"pinned to CPU(s) {sorted(os.sched_getaffinity(0))}, OMP/OPENBLAS threads 1"
     lines = header("Live map speed", note + (f"; {args.note}" if args.note else ""))
     lines += [
-        "", f"Four cameras 848x480, the moving-robot scene, 2 cm grid over 6 x 6 m "
+        "",
+        f"Four cameras 848x480, the moving-robot scene, 2 cm grid over 6 x 6 m "
         f"({grid.shape[0]} x {grid.shape[1]} cells), {args.maps} maps 0.5 s apart; time from "
         "the frames in memory to the encoded `P/heightmap/live` payload. The first map "
-        f"(ray tables built, every cell new) apart. Target <= {TARGET_S} s per map.", "",
+        f"(ray tables built, every cell new) apart. Target <= {TARGET_S} s per map.",
+        "",
         "| decimation | points per map | median s | p90 s | max s | first s | encode s "
         "| maps/s at the median | payload kB |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -91,8 +108,7 @@ def main() -> None:
         settings = LiveConfig(decimation=decimation)
         whole, encode, sizes = timed(frames, settings, grid, site.ceiling_z)
         steady = whole[1:]
-        points = sum(int(np.count_nonzero(f.depth[::decimation, ::decimation]))
-                     for f in frames[1])  # fmt: skip
+        points = sum(int(np.count_nonzero(f.depth[::decimation, ::decimation])) for f in frames[1])
         median = statistics.median(steady)
         lines.append(
             f"| {decimation} | {points:,} | {median:.3f} | {np.percentile(steady, 90):.3f} "

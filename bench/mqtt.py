@@ -43,11 +43,19 @@ BASE = f"silo/{SILO}"
 
 def summary(k: int) -> dict:
     return {
-        "scan_id": f"{SILO}-{k:06d}", "captured_at": "2026-11-22T02:00:00.000Z",
-        "volume_m3": 12.3, "mass_t": 9.5, "coverage": 0.9, "grid_step_m": 0.02,
+        "scan_id": f"{SILO}-{k:06d}",
+        "captured_at": "2026-11-22T02:00:00.000Z",
+        "volume_m3": 12.3,
+        "mass_t": 9.5,
+        "coverage": 0.9,
+        "grid_step_m": 0.02,
         "surface": {"min_z": 0.1, "mean_z": 0.9, "max_z": 1.4},
-        "level": {"min": 0.1, "mean": 0.9, "max": 1.4}, "valid": True, "invalid_reason": None,
-        "degraded": False, "cameras": {"used": ["a", "b"], "failed": []}, "piles": [],
+        "level": {"min": 0.1, "mean": 0.9, "max": 1.4},
+        "valid": True,
+        "invalid_reason": None,
+        "degraded": False,
+        "cameras": {"used": ["a", "b"], "failed": []},
+        "piles": [],
         "timings": {"capture_s": 4.2, "reconstruct_s": 1.3},
     }
 
@@ -59,8 +67,9 @@ class Counter:
         self.arrivals: dict[str, float] = {}
         self.event = threading.Event()
         self.want = 0
-        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-counter",
-                                  protocol=mqtt.MQTTv5)
+        self.client = mqtt.Client(
+            CallbackAPIVersion.VERSION2, client_id="bench-counter", protocol=mqtt.MQTTv5
+        )
         ready = threading.Event()
         self.client.on_subscribe = lambda *a: ready.set()
         self.client.on_message = self._on_message
@@ -81,18 +90,25 @@ class Counter:
 
 
 def config(port: int, outbox: Path, **extra) -> MqttConfig:
-    return MqttConfig.model_validate({
-        "port": port, "outbox_path": outbox, "reconnect_min_s": 0.05, "reconnect_max_s": 0.05,
-        "outbox_max_messages": 1_000_000, **extra,
-    })
+    return MqttConfig.model_validate(
+        {
+            "port": port,
+            "outbox_path": outbox,
+            "reconnect_min_s": 0.05,
+            "reconnect_max_s": 0.05,
+            "outbox_max_messages": 1_000_000,
+            **extra,
+        }
+    )
 
 
 def bench_replay(work: Path, n: int, max_inflight: int, subscriber: bool) -> dict:
     """The subscriber is mosquitto_sub in its own process, so it does not share our GIL."""
     name = f"{max_inflight}-{subscriber}"
     broker = Broker(work / f"broker-replay-{name}", extra=BROKER_TUNING)
-    tel = Telemetry(config(broker.port, work / f"replay-{name}.sqlite",
-                           max_inflight=max_inflight), SILO, [])
+    tel = Telemetry(
+        config(broker.port, work / f"replay-{name}.sqlite", max_inflight=max_inflight), SILO, []
+    )
     for k in range(n):
         tel.publish_result(summary(k))
     pending = tel.outbox.size()
@@ -100,10 +116,30 @@ def bench_replay(work: Path, n: int, max_inflight: int, subscriber: bool) -> dic
     sub = None
     if subscriber:
         sub = subprocess.Popen(
-            ["mosquitto_sub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1", "-V", "5",
-             "-t", f"{BASE}/scan", "-C", str(n), "-k", "600", "-c", "-i", "bench-sub",
-             "-x", "3600"],
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            [
+                "mosquitto_sub",
+                "-h",
+                "127.0.0.1",
+                "-p",
+                str(broker.port),
+                "-q",
+                "1",
+                "-V",
+                "5",
+                "-t",
+                f"{BASE}/scan",
+                "-C",
+                str(n),
+                "-k",
+                "600",
+                "-c",
+                "-i",
+                "bench-sub",
+                "-x",
+                "3600",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
         )
         time.sleep(0.5)  # subscribed
     t0 = time.perf_counter()
@@ -121,8 +157,14 @@ def bench_replay(work: Path, n: int, max_inflight: int, subscriber: bool) -> dic
         received, received_s = len(out.splitlines()), time.perf_counter() - t0
     tel.stop()
     broker.stop()
-    return {"max_inflight": max_inflight, "pending": pending[0], "bytes": pending[1],
-            "received": received, "received_s": received_s, "emptied_s": emptied}
+    return {
+        "max_inflight": max_inflight,
+        "pending": pending[0],
+        "bytes": pending[1],
+        "received": received,
+        "received_s": received_s,
+        "emptied_s": emptied,
+    }
 
 
 def bench_latency(work: Path, samples: int) -> dict:
@@ -170,13 +212,25 @@ def ms(values: list[float], q: float) -> str:
 
 
 def machine() -> str:
-    model = next((line.split(":", 1)[1].strip() for line in subprocess.run(
-        ["lscpu"], capture_output=True, text=True).stdout.splitlines()
-        if line.startswith("Model name")), platform.processor())
+    model = next(
+        (
+            line.split(":", 1)[1].strip()
+            for line in subprocess.run(
+                ["lscpu"], capture_output=True, text=True
+            ).stdout.splitlines()
+            if line.startswith("Model name")
+        ),
+        platform.processor(),
+    )
     cores = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
-    disk = "tmpfs" if "tmpfs" in subprocess.run(
-        ["df", "--output=fstype", tempfile.gettempdir()], capture_output=True, text=True
-    ).stdout else "disk"
+    disk = (
+        "tmpfs"
+        if "tmpfs"
+        in subprocess.run(
+            ["df", "--output=fstype", tempfile.gettempdir()], capture_output=True, text=True
+        ).stdout
+        else "disk"
+    )
     return f"{model}, {cores} cores, Python {platform.python_version()}, outbox on {disk}"
 
 
@@ -190,8 +244,10 @@ def main() -> int:
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        replays = [bench_replay(work, args.messages, m, s)
-                   for m, s in ((20, False), (20, True), (100, True))]
+        replays = [
+            bench_replay(work, args.messages, m, s)
+            for m, s in ((20, False), (20, True), (100, True))
+        ]
         lat = bench_latency(work, args.samples)
     load_after = os.getloadavg()[0]
     med = statistics.median

@@ -86,7 +86,8 @@ def section_a(scan: Scan, runs: int, cold_heap_s: float) -> list[str]:
         f" that has not called `keep_freed_memory`, glibc's default): {cold_heap_s:.3f} s."
         " Stages of the last run:",
         "",
-        "| stage | s |", "|---|---|",
+        "| stage | s |",
+        "|---|---|",
     ]
     lines += [f"| {k} | {v:.4f} |" for k, v in result.timings_s.items()]
     lines.append(f"| total of stages | {sum(result.timings_s.values()):.4f} |")
@@ -95,18 +96,24 @@ def section_a(scan: Scan, runs: int, cold_heap_s: float) -> list[str]:
 
 def section_b(base: Scan, points: Sequence[int], steps: Sequence[float], runs: int) -> list[str]:
     lines = [
-        "## (b) Time against points and cells", "",
+        "## (b) Time against points and cells",
+        "",
         f"Median of {runs} runs. Points: four cameras, 1 cm grid. Cells: 1.6M points (or the"
-        " largest point count run), grid cells over the 6 x 6 m region.", "",
-        "| points | time s | µs per point |", "|---|---|---|",
+        " largest point count run), grid cells over the 6 x 6 m region.",
+        "",
+        "| points | time s | µs per point |",
+        "|---|---|---|",
     ]
     for n in points:
         median, _ = timed_reconstruct(resampled(base, n), 0.01, runs)
         lines.append(f"| {n:,} | {median:.3f} | {median / n * 1e6:.3f} |")
     fixed = 1_600_000 if 1_600_000 in points else max(points)
     scan = resampled(base, fixed)
-    lines += ["", f"| grid step m | cells | time s (at {fixed:,} points) | µs per cell |",
-              "|---|---|---|---|"]
+    lines += [
+        "",
+        f"| grid step m | cells | time s (at {fixed:,} points) | µs per cell |",
+        "|---|---|---|---|",
+    ]
     for step in steps:
         median, _ = timed_reconstruct(scan, step, runs)
         rows, cols = Grid.over(scan.site.region, step).shape
@@ -145,16 +152,19 @@ def _agent(command: list[str]) -> Timed:
     cpu = _children_cpu_s()
     wall, out, _ = _wall(command)
     results = [json.loads(line) for line in out.splitlines()]
-    return Timed(wall, _children_cpu_s() - cpu, [r["volume_m3"] for r in results],
-                 tuple(sum(r["timings_s"].values()) for r in results))
+    return Timed(
+        wall,
+        _children_cpu_s() - cpu,
+        [r["volume_m3"] for r in results],
+        tuple(sum(r["timings_s"].values()) for r in results),
+    )
 
 
 def _cloudcompare(plys: list[Path], floor_z: float) -> Timed:
     """CloudCompare once per cloud, times summed."""
     cpu = _children_cpu_s()
     runs = [cloudcompare_volume(ply, 0.01, floor_z) for ply in plys]
-    return Timed(sum(r.wall_s for r in runs), _children_cpu_s() - cpu,
-                 [r.volume_m3 for r in runs])
+    return Timed(sum(r.wall_s for r in runs), _children_cpu_s() - cpu, [r.volume_m3 for r in runs])
 
 
 def _cached_scans(base: Scan, workdir: Path) -> tuple[Path, list[Path]]:
@@ -174,12 +184,15 @@ def _cached_scans(base: Scan, workdir: Path) -> tuple[Path, list[Path]]:
 
 def _ratio_line(what: str, agent_s: float, cc_s: float, target: float) -> str:
     verdict = "met" if agent_s / cc_s <= target else "NOT met"
-    return (f"{what}: silo-agent / CloudCompare wall time **{agent_s / cc_s:.2f}**"
-            f" (target <= {target:g}: {verdict}).")
+    return (
+        f"{what}: silo-agent / CloudCompare wall time **{agent_s / cc_s:.2f}**"
+        f" (target <= {target:g}: {verdict})."
+    )
 
 
-def section_c(base: Scan, runs: int, workdir: Path,
-              baseline: tuple[str, Path] | None = None) -> list[str]:
+def section_c(
+    base: Scan, runs: int, workdir: Path, baseline: tuple[str, Path] | None = None
+) -> list[str]:
     """Single scan and batch, silo-agent and CloudCompare interleaved so both see the same
     machine load."""
     cache, plys = _cached_scans(base, workdir)
@@ -207,40 +220,50 @@ def section_c(base: Scan, runs: int, workdir: Path,
 
     n = CACHED_SCANS
     return [
-        "## (c) Whole processes side by side, 1 cm grid", "",
+        "## (c) Whole processes side by side, 1 cm grid",
+        "",
         "Everything in this section ran in one run of this script, silo-agent and CloudCompare"
         " alternating, on the same core. CloudCompare is given each scan's cloud already fused"
         " and cropped (written beforehand, not timed); `silo-agent process` reads the raw scan"
         " directory (PLYs + manifest) and does everything itself: start Python, import, read,"
         " reconstruct, detect piles, print. CPU s is user + system time of the process: it"
         " counts what the run itself costs, where wall time also counts waiting for the core"
-        " while other work runs on it.", "",
-        f"### Single scan (4 cameras, 1.6 M points), median of {runs}", "",
-        "| tool | wall s | CPU s | volume m³ | error |", "|---|---|---|---|---|",
+        " while other work runs on it.",
+        "",
+        f"### Single scan (4 cameras, 1.6 M points), median of {runs}",
+        "",
+        "| tool | wall s | CPU s | volume m³ | error |",
+        "|---|---|---|---|---|",
         f"| `python -m silo_agent process SCAN --grid-step 0.01 --json` |"
         f" {median(agent, 'wall_s'):.3f} | {median(agent, 'cpu_s'):.3f} |"
         f" {fmt(agent[-1].volumes[0])} | {err(agent[-1].volumes[0])} |",
         f"| `CloudCompare -SILENT -AUTO_SAVE OFF -O fused.ply -VOLUME -GRID_STEP 0.01"
         f" -CONST_HEIGHT {floor_z:g}` | {median(cc, 'wall_s'):.3f} | {median(cc, 'cpu_s'):.3f} |"
         f" {fmt(cc[-1].volumes[0])} | {err(cc[-1].volumes[0])} |",
-        f"| true volume | | | {truth:.4f} | |", "",
+        f"| true volume | | | {truth:.4f} | |",
+        "",
         _ratio_line("Single scan", median(agent, "wall_s"), median(cc, "wall_s"), 1.5)
-        + f" CPU time ratio {median(agent, 'cpu_s') / median(cc, 'cpu_s'):.2f}.", "",
-        f"### Batch: {n} cached scans (each a different draw of 1.6 M points)", "",
+        + f" CPU time ratio {median(agent, 'cpu_s') / median(cc, 'cpu_s'):.2f}.",
+        "",
+        f"### Batch: {n} cached scans (each a different draw of 1.6 M points)",
+        "",
         "| tool | wall s, all | s per scan | CPU s per scan | volume error, min .. max |",
         "|---|---|---|---|---|",
         f"| `python -m silo_agent process CACHE --grid-step 0.01 --json` (one process) |"
         f" {batch.wall_s:.3f} | {batch.wall_s / n:.3f} | {batch.cpu_s / n:.3f} |"
         f" {errors(batch)} |",
         f"| CloudCompare as above, once per scan | {cc_batch.wall_s:.3f} |"
-        f" {cc_batch.wall_s / n:.3f} | {cc_batch.cpu_s / n:.3f} | {errors(cc_batch)} |", "",
+        f" {cc_batch.wall_s / n:.3f} | {cc_batch.cpu_s / n:.3f} | {errors(cc_batch)} |",
+        "",
         _ratio_line("Batch, per scan", batch.wall_s, cc_batch.wall_s, 1.0)
-        + f" CPU time ratio {batch.cpu_s / cc_batch.cpu_s:.2f}.", "",
+        + f" CPU time ratio {batch.cpu_s / cc_batch.cpu_s:.2f}.",
+        "",
         f"In the batch, the reconstruction's own stages take {batch.reconstruct_s[0]:.3f} s on"
         f" the first scan and a median {statistics.median(batch.reconstruct_s[1:]):.3f} s on"
         " the others (arrays already faulted in); the rest of a scan's"
         f" {batch.wall_s / n:.3f} s is reading it, pile detection and the process's start"
-        " shared out.", "",
+        " shared out.",
+        "",
         *_stages(scan_dir, runs),
         *_import_tables(scan_dir, baseline),
     ]
@@ -293,25 +316,31 @@ def _stages(scan_dir: Path, runs: int) -> list[str]:
     start = statistics.median(_wall([sys.executable, "-c", "pass"])[0] for _ in range(runs))
     steps, inner = [], []
     for _ in range(runs):
-        _, _, err = _wall([sys.executable, "-c", STAGES, str(scan_dir), "--grid-step", "0.01",
-                           "--json"])
+        _, _, err = _wall(
+            [sys.executable, "-c", STAGES, str(scan_dir), "--grid-step", "0.01", "--json"]
+        )
         report = json.loads(err.splitlines()[-1])
         steps.append(report["steps"])
         inner.append(report["inner"])
     median = [statistics.median(column) for column in zip(*steps, strict=True)]
     reconstruct_s = statistics.median(sum(i.values()) for i in inner)
     lines = [
-        f"### Where a single `process` spends its time (median of {runs} fresh processes)", "",
-        "The steps `process` takes, in its order, each timed inside one fresh interpreter.", "",
-        "| step | s |", "|---|---|",
+        f"### Where a single `process` spends its time (median of {runs} fresh processes)",
+        "",
+        "The steps `process` takes, in its order, each timed inside one fresh interpreter.",
+        "",
+        "| step | s |",
+        "|---|---|",
         f"| start the interpreter (`python -c pass`, separate runs) | {start:.3f} |",
     ]
     lines += [f"| {name} | {s:.3f} |" for name, s in zip(STEP_NAMES, median, strict=True)]
     lines += [
-        f"| **total** | **{start + sum(median):.3f}** |", "",
+        f"| **total** | **{start + sum(median):.3f}** |",
+        "",
         f"Of `analyse`, the reconstruction's own stages take {reconstruct_s:.3f} s in this fresh"
         " process (section (a): the same work in a warm process); the rest is pile detection"
-        " and the first touch of every array.", "",
+        " and the first touch of every array.",
+        "",
     ]
     return lines
 
@@ -322,8 +351,14 @@ F2PY_ALL = "numpy.f2py with what it imports (cumulative, also counted in its pac
 def _importtime(command: list[str], tree: Path = REPO) -> dict[str, float]:
     """Seconds of import per top-level package (self times summed), from `-X importtime`, of
     silo_agent from source `tree` (run from there: `-m` looks in the working directory first)."""
-    done = subprocess.run([sys.executable, "-X", "importtime", *command], capture_output=True,
-                          text=True, cwd=tree, env=ENV | {"PYTHONPATH": str(tree)}, check=False)
+    done = subprocess.run(
+        [sys.executable, "-X", "importtime", *command],
+        capture_output=True,
+        text=True,
+        cwd=tree,
+        env=ENV | {"PYTHONPATH": str(tree)},
+        check=False,
+    )
     per: dict[str, float] = {}
     for line in done.stderr.splitlines():
         found = re.match(r"import time:\s+(\d+) \|\s+(\d+) \|\s+(\S+)$", line)
@@ -336,18 +371,27 @@ def _importtime(command: list[str], tree: Path = REPO) -> dict[str, float]:
     return per
 
 
-def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None,
-                   runs: int = 3) -> list[str]:
+def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None, runs: int = 3) -> list[str]:
     """Import time by package for `process --help` and the process path, median of runs, and
     the same for the `baseline` commit's source tree if given (runs alternate between them)."""
     commands = {
         "`process --help`": ["-m", "silo_agent", "process", "--help"],
-        "`process SCAN`": ["-m", "silo_agent", "process", str(scan_dir), "--grid-step", "0.01",
-                           "--json"],
+        "`process SCAN`": [
+            "-m",
+            "silo_agent",
+            "process",
+            str(scan_dir),
+            "--grid-step",
+            "0.01",
+            "--json",
+        ],
     }
     trees = {"": REPO} if baseline is None else {f" at {baseline[0]}": baseline[1], "": REPO}
-    columns = {f"{name}{label}": (command, tree) for name, command in commands.items()
-               for label, tree in trees.items()}  # fmt: skip
+    columns = {
+        f"{name}{label}": (command, tree)
+        for name, command in commands.items()
+        for label, tree in trees.items()
+    }
     tables: dict[str, list[dict[str, float]]] = {k: [] for k in columns}
     for _ in range(runs):
         for key, (command, tree) in columns.items():
@@ -357,24 +401,34 @@ def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None,
     def median_of(key: str, name: str) -> float:
         return statistics.median(r.get(name, 0.0) for r in tables[key])
 
-    total = {k: statistics.median(sum(t for n, t in r.items() if n != F2PY_ALL) for r in v)
-             for k, v in tables.items()}
-    shown = sorted((n for n in names if max(median_of(k, n) for k in tables) >= 0.01),
-                   key=lambda n: -median_of("`process SCAN`", n))
+    total = {
+        k: statistics.median(sum(t for n, t in r.items() if n != F2PY_ALL) for r in v)
+        for k, v in tables.items()
+    }
+    shown = sorted(
+        (n for n in names if max(median_of(k, n) for k in tables) >= 0.01),
+        key=lambda n: -median_of("`process SCAN`", n),
+    )
     lines = [
-        f"### Import time by package (`python -X importtime`, median of {runs})", "",
+        f"### Import time by package (`python -X importtime`, median of {runs})",
+        "",
         "Self time of every module imported, summed per top-level package (`numpy.f2py` apart:"
         " numpy loads it lazily, and scipy's array-API layer, which every scipy submodule used"
         " here imports, touches it). Packages under 10 ms in every column are in the total only."
-        + ("" if baseline is None else f" Columns `at {baseline[0]}` are the source tree of"
-           f" that commit (`git archive {baseline[0]}`), run alternately with this one."), "",
+        + (
+            ""
+            if baseline is None
+            else f" Columns `at {baseline[0]}` are the source tree of"
+            f" that commit (`git archive {baseline[0]}`), run alternately with this one."
+        ),
+        "",
         "| package | " + " | ".join(f"{k} s" for k in tables) + " |",
         "|---|" + "---|" * len(tables),
     ]
-    lines += [f"| {n} | " + " | ".join(f"{median_of(k, n):.3f}" for k in tables) + " |"
-              for n in shown]
-    lines.append("| **all imports** | " + " | ".join(f"**{total[k]:.3f}**" for k in tables)
-                 + " |")
+    lines += [
+        f"| {n} | " + " | ".join(f"{median_of(k, n):.3f}" for k in tables) + " |" for n in shown
+    ]
+    lines.append("| **all imports** | " + " | ".join(f"**{total[k]:.3f}**" for k in tables) + " |")
     return [*lines, ""]
 
 
@@ -384,16 +438,24 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--runs", type=int, default=5, help="timed runs per figure (median)")
     p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
     p.add_argument("--all-cores", action="store_true", help="do not pin to one CPU")
-    p.add_argument("--quick", action="store_true",
-                   help="smoke run: 2 runs, two point counts, two grid steps")
-    p.add_argument("--whole", action="store_true",
-                   help="only (c), the whole processes (default out: speed-process.md)")
-    p.add_argument("--baseline", metavar="COMMIT",
-                   help="also time the imports of this commit's source tree, for comparison")
+    p.add_argument(
+        "--quick", action="store_true", help="smoke run: 2 runs, two point counts, two grid steps"
+    )
+    p.add_argument(
+        "--whole",
+        action="store_true",
+        help="only (c), the whole processes (default out: speed-process.md)",
+    )
+    p.add_argument(
+        "--baseline",
+        metavar="COMMIT",
+        help="also time the imports of this commit's source tree, for comparison",
+    )
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
-    args.out = args.out or Path("bench/results/speed-process.md" if args.whole
-                                else "bench/results/speed.md")
+    args.out = args.out or Path(
+        "bench/results/speed-process.md" if args.whole else "bench/results/speed.md"
+    )
     points, steps = (POINTS[:2], STEPS[:2]) if args.quick else (POINTS, STEPS)
     runs = 2 if args.quick else args.runs
     if not args.all_cores:
@@ -403,8 +465,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     scan = resampled(base, 4 * 400_000)
     note = "QUICK RUN (smoke test, fewer runs and sizes); " if args.quick else ""
     load_before = os.getloadavg()
-    head = header("Speed benchmark", note + f"scene {args.scene}, views {', '.join(VIEWS)};"
-                  f" pinned to CPU(s) {cores} (subprocesses inherit it)")
+    head = header(
+        "Speed benchmark",
+        note + f"scene {args.scene}, views {', '.join(VIEWS)};"
+        f" pinned to CPU(s) {cores} (subprocesses inherit it)",
+    )
     lines: list[str] = []
     if not args.whole:
         cold_heap_s, _ = timed_reconstruct(scan, 0.01, runs)  # before keep_freed_memory
@@ -416,14 +481,17 @@ def main(argv: Sequence[str] | None = None) -> None:
         if args.baseline:
             tree = Path(tmp) / "baseline"
             tree.mkdir()
-            archive = subprocess.run(["git", "archive", args.baseline], cwd=REPO,
-                                     capture_output=True, check=True).stdout
+            archive = subprocess.run(
+                ["git", "archive", args.baseline], cwd=REPO, capture_output=True, check=True
+            ).stdout
             subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
             baseline = (args.baseline, tree)
         lines += section_c(base, 2 if args.quick else 5, Path(tmp), baseline)
     before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
-    load = (f"- machine load (`uptime` load average, 1 / 5 / 15 min) at start {before}, at end"
-            f" {after}: other work shares the {os.cpu_count()} cores, figures are under that load")
+    load = (
+        f"- machine load (`uptime` load average, 1 / 5 / 15 min) at start {before}, at end"
+        f" {after}: other work shares the {os.cpu_count()} cores, figures are under that load"
+    )
     lines = [*head[:-1], load, "", *lines]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")

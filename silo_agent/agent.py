@@ -61,8 +61,13 @@ class _Pending:
 class Agent:
     """The daemon. `run()` returns the exit status."""
 
-    def __init__(self, config_path: Path, config: Config, max_scans: int | None = None,
-                 notifier: Notifier | None = None) -> None:
+    def __init__(
+        self,
+        config_path: Path,
+        config: Config,
+        max_scans: int | None = None,
+        notifier: Notifier | None = None,
+    ) -> None:
         self.config_path = config_path
         self.config = config
         self.max_scans = max_scans
@@ -112,8 +117,9 @@ class Agent:
         with self._lock:
             running = self._running
             if running is not None:
-                raise CommandRejected(f"busy: scan {running.scan_id} is running",
-                                      scan_id=running.scan_id)
+                raise CommandRejected(
+                    f"busy: scan {running.scan_id} is running", scan_id=running.scan_id
+                )
             if self._stop.is_set():
                 raise CommandRejected("the agent is stopping")
             self._pending.requests.append(command)
@@ -136,15 +142,25 @@ class Agent:
         sched = self.config.schedule
         zone = ZoneInfo(self.config.silo.timezone)
         scheduler = BackgroundScheduler(timezone=zone)
-        options = {"misfire_grace_time": int(max(1, sched.misfire_grace_s)), "coalesce": True,
-                   "max_instances": 1}  # fmt: skip
+        options = {
+            "misfire_grace_time": int(max(1, sched.misfire_grace_s)),
+            "coalesce": True,
+            "max_instances": 1,
+        }
         if sched.interval_s is not None:
-            scheduler.add_job(self._scheduled, IntervalTrigger(seconds=sched.interval_s,
-                                                               timezone=zone),
-                              id="interval", **options)  # fmt: skip
+            scheduler.add_job(
+                self._scheduled,
+                IntervalTrigger(seconds=sched.interval_s, timezone=zone),
+                id="interval",
+                **options,
+            )
         if sched.cron is not None:
-            scheduler.add_job(self._scheduled, CronTrigger.from_crontab(sched.cron, timezone=zone),
-                              id="cron", **options)  # fmt: skip
+            scheduler.add_job(
+                self._scheduled,
+                CronTrigger.from_crontab(sched.cron, timezone=zone),
+                id="cron",
+                **options,
+            )
         scheduler.start()
         self._scheduler = scheduler
         for job in scheduler.get_jobs():
@@ -166,14 +182,21 @@ class Agent:
                 taken.add(self._last.scan_id)
             scan_id = new_scan_id(self.config, started, taken)
             deadline = time.monotonic() + self.config.schedule.scan_timeout_s
-            running = _Running(scan_id, threading.Thread(), deadline, threading.Event(),
-                               pending.requests,
-                               "request" if pending.requests else "schedule", started)  # fmt: skip
+            running = _Running(
+                scan_id,
+                threading.Thread(),
+                deadline,
+                threading.Event(),
+                pending.requests,
+                "request" if pending.requests else "schedule",
+                started,
+            )
 
             def work() -> None:
                 try:
-                    running.outcome = self.pipeline.run(scan_id, started, deadline,
-                                                        running.abandoned)
+                    running.outcome = self.pipeline.run(
+                        scan_id, started, deadline, running.abandoned
+                    )
                 except ScanAbandoned as exc:
                     running.error = str(exc)
                 except Exception as exc:  # a bug in one scan must not end the service
@@ -195,8 +218,10 @@ class Agent:
         if running.thread.is_alive():
             if time.monotonic() > running.deadline and not running.reported:
                 running.abandoned.set()
-                self._report(running, f"deadline of {self.config.schedule.scan_timeout_s} s "
-                                      "exceeded; scan abandoned")  # fmt: skip
+                self._report(
+                    running,
+                    f"deadline of {self.config.schedule.scan_timeout_s} s exceeded; scan abandoned",
+                )
             return
         with self._lock:
             self._running = None
@@ -212,8 +237,9 @@ class Agent:
 
         running.reported = True
         log.error("scan failed", scan_id=running.scan_id, reason=error)
-        summary = failure_summary(running.scan_id, f"{running.started:%Y-%m-%dT%H:%M:%SZ}",
-                                  self.config, error, [], {})  # fmt: skip
+        summary = failure_summary(
+            running.scan_id, f"{running.started:%Y-%m-%dT%H:%M:%SZ}", self.config, error, [], {}
+        )
         try:
             self.telemetry.publish_scan_failure(summary)
         except Exception:
@@ -227,7 +253,8 @@ class Agent:
         self._done += 1
         for command in running.requests:
             self.telemetry.finish_scan_request(
-                command, scan_id=outcome.scan_id,
+                command,
+                scan_id=outcome.scan_id,
                 error=outcome.error if outcome.outcome == "failed" else None,
             )
         volume = (outcome.summary or {}).get("volume_m3")
@@ -246,8 +273,11 @@ class Agent:
         try:
             new = load_config(self.config_path, service=True)
         except ConfigError as exc:
-            log.error("config reload rejected, keeping the running config",
-                      path=str(self.config_path), error=str(exc))
+            log.error(
+                "config reload rejected, keeping the running config",
+                path=str(self.config_path),
+                error=str(exc),
+            )
             return
         if new.mqtt != self.config.mqtt or new.silo.id != self.config.silo.id:
             log.warning("config reloaded; [mqtt] and silo.id changes need a restart")
@@ -271,8 +301,10 @@ class Agent:
     # ------------------------------------------------------------ main loop
 
     def run(self) -> int:
-        handlers = {s: signal.signal(s, self._signal)
-                    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}  # fmt: skip
+        handlers = {
+            s: signal.signal(s, self._signal)
+            for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+        }
         try:
             return self._serve()
         finally:
@@ -294,8 +326,13 @@ class Agent:
         if config.schedule.scan_at_start:
             with self._lock:
                 self._pending.scheduled = True
-        log.info("agent started", silo=config.silo.id, config=str(self.config_path),
-                 cache=str(self.cache.directory), max_scans=self.max_scans)  # fmt: skip
+        log.info(
+            "agent started",
+            silo=config.silo.id,
+            config=str(self.config_path),
+            cache=str(self.cache.directory),
+            max_scans=self.max_scans,
+        )
         self.notifier.ready(f"started; silo {config.silo.id}")
         watchdog_every = (self.notifier.watchdog_s / 2) if self.notifier.watchdog_s else None
         next_ping = 0.0
@@ -334,8 +371,11 @@ class Agent:
         self.live.close()
         running = self._running
         if running is not None and running.thread.is_alive():
-            log.info("waiting for the running scan", scan_id=running.scan_id,
-                     timeout_s=self.config.schedule.stop_timeout_s)
+            log.info(
+                "waiting for the running scan",
+                scan_id=running.scan_id,
+                timeout_s=self.config.schedule.stop_timeout_s,
+            )
             running.thread.join(self.config.schedule.stop_timeout_s)
             if running.thread.is_alive():
                 running.abandoned.set()

@@ -76,9 +76,12 @@ class AlarmState:
     drift: Mapping[str, Any] = field(default_factory=dict)  # drift.DriftState.to_json()
 
     def to_json(self) -> dict[str, Any]:
-        return {"active": {k: dict(v) for k, v in self.active.items()},
-                "baseline_scan_id": self.baseline_scan_id,
-                "last_volume_m3": self.last_volume_m3, "drift": dict(self.drift)}  # fmt: skip
+        return {
+            "active": {k: dict(v) for k, v in self.active.items()},
+            "baseline_scan_id": self.baseline_scan_id,
+            "last_volume_m3": self.last_volume_m3,
+            "drift": dict(self.drift),
+        }
 
     @staticmethod
     def from_json(data: Mapping[str, Any]) -> AlarmState:
@@ -124,8 +127,9 @@ def noise_floor(baseline: HeightMap, new: HeightMap, both: np.ndarray) -> float:
     return max(spread, rough)
 
 
-def find_collapses(baseline: HeightMap, new: HeightMap, depth_m: float, min_area_m2: float,
-                   noise_k: float) -> list[Collapse]:
+def find_collapses(
+    baseline: HeightMap, new: HeightMap, depth_m: float, min_area_m2: float, noise_k: float
+) -> list[Collapse]:
     """Regions (8-connected) where the new surface is lower than the baseline by more than
     max(depth_m, noise_k x noise sigma), largest first. The decision rests on the cells
     observed in both maps: a region needs `min_area_m2` of them; its footprint, depth and lost
@@ -154,10 +158,16 @@ def find_collapses(baseline: HeightMap, new: HeightMap, depth_m: float, min_area
     cx = ndimage.sum(xs * drop * cell_area, labels, index) / lost
     cy = ndimage.sum(ys * drop * cell_area, labels, index) / lost
     found = [
-        Collapse((float(cx[i]), float(cy[i])), float(areas[i]), float(depths[i]),
-                 float(lost[i]), float(threshold))
-        for i in range(count) if observed_areas[i] >= min_area_m2
-    ]  # fmt: skip
+        Collapse(
+            (float(cx[i]), float(cy[i])),
+            float(areas[i]),
+            float(depths[i]),
+            float(lost[i]),
+            float(threshold),
+        )
+        for i in range(count)
+        if observed_areas[i] >= min_area_m2
+    ]
     return sorted(found, key=lambda c: -c.area_m2)
 
 
@@ -165,18 +175,28 @@ def detect_collapse(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding 
     if inputs.baseline is None or inputs.heightmap is None or not inputs.valid:
         return None
     scale = cfg.hysteresis if active else 1.0  # an active collapse clears only well below
-    found = find_collapses(inputs.baseline, inputs.heightmap, cfg.collapse_depth_m * scale,
-                           cfg.collapse_min_area_m2 * scale, cfg.collapse_noise_k)
+    found = find_collapses(
+        inputs.baseline,
+        inputs.heightmap,
+        cfg.collapse_depth_m * scale,
+        cfg.collapse_min_area_m2 * scale,
+        cfg.collapse_noise_k,
+    )
     if not found:
         return Finding(False, "critical", f"no collapse against {inputs.baseline_scan_id}")
     c = found[0]
     return Finding(
-        True, "critical",
+        True,
+        "critical",
         f"surface dropped {c.depth_m:.2f} m over {c.area_m2:.2f} m² at "
         f"({c.centroid[0]:.2f}, {c.centroid[1]:.2f}) against {inputs.baseline_scan_id}",
-        {"position": [round(c.centroid[0], 4), round(c.centroid[1], 4)],
-         "area_m2": round(c.area_m2, 4), "depth_m": round(c.depth_m, 4),
-         "volume_m3": round(c.volume_m3, 4), "threshold": round(c.threshold_m, 4)},
+        {
+            "position": [round(c.centroid[0], 4), round(c.centroid[1], 4)],
+            "area_m2": round(c.area_m2, 4),
+            "depth_m": round(c.depth_m, 4),
+            "volume_m3": round(c.volume_m3, 4),
+            "threshold": round(c.threshold_m, 4),
+        },
     )
 
 
@@ -190,10 +210,13 @@ def detect_level_high(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Findin
     limit = inputs.ceiling_z - margin
     distance = inputs.ceiling_z - inputs.max_z
     return Finding(
-        inputs.max_z >= limit, "warning",
+        inputs.max_z >= limit,
+        "warning",
         f"surface {distance:.2f} m below the ceiling (alarm within {cfg.high_level_margin_m} m)",
-        {"value": round(inputs.max_z - inputs.floor_z, 4),
-         "threshold": round(inputs.ceiling_z - cfg.high_level_margin_m - inputs.floor_z, 4)},
+        {
+            "value": round(inputs.max_z - inputs.floor_z, 4),
+            "threshold": round(inputs.ceiling_z - cfg.high_level_margin_m - inputs.floor_z, 4),
+        },
     )
 
 
@@ -202,7 +225,8 @@ def detect_level_low(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding
         return None
     limit = cfg.low_volume_m3 * ((1 + cfg.hysteresis) if active else 1.0)
     return Finding(
-        inputs.volume_m3 < limit, "warning",
+        inputs.volume_m3 < limit,
+        "warning",
         f"volume {inputs.volume_m3:.3f} m³ (alarm below {cfg.low_volume_m3} m³)",
         {"value": round(inputs.volume_m3, 4), "threshold": cfg.low_volume_m3},
     )
@@ -215,7 +239,8 @@ def detect_change(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding | 
     share = abs(now - before) / max(abs(before), 1e-9)
     limit = cfg.change_fraction * (cfg.hysteresis if active else 1.0)
     return Finding(
-        share > limit, "warning",
+        share > limit,
+        "warning",
         f"volume {before:.3f} -> {now:.3f} m³ ({share * 100:.1f} % in one scan)",
         {"value": round(now - before, 4), "threshold": round(cfg.change_fraction * before, 4)},
     )
@@ -224,7 +249,8 @@ def detect_change(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding | 
 def detect_camera(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding:
     failed = inputs.failed_cameras
     return Finding(
-        bool(failed), "warning",
+        bool(failed),
+        "warning",
         "; ".join(f"{serial}: {error}" for serial, error in failed) or "all cameras delivered",
         {"value": float(len(failed))},
     )
@@ -235,7 +261,8 @@ def detect_coverage(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding 
         return None
     limit = cfg.min_coverage * ((1 + cfg.hysteresis) if active else 1.0)
     return Finding(
-        inputs.coverage < limit, "warning",
+        inputs.coverage < limit,
+        "warning",
         f"{inputs.coverage * 100:.1f} % of the region observed (alarm below "
         f"{cfg.min_coverage * 100:.0f} %)",
         {"value": round(inputs.coverage, 4), "threshold": cfg.min_coverage},
@@ -244,9 +271,11 @@ def detect_coverage(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding 
 
 def detect_cache(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding:
     return Finding(
-        inputs.cache_full, "critical",
+        inputs.cache_full,
+        "critical",
         "audit cache full or unwritable: scan published without its raw clouds, result or "
-        "height map kept" if inputs.cache_full
+        "height map kept"
+        if inputs.cache_full
         else "audit cache writable",
     )
 
@@ -265,8 +294,11 @@ DETECTORS: dict[str, Detector] = {
 # ---------------------------------------------------------------- lifecycle
 
 # alarm type -> the AlarmsConfig key whose absence (None) switches its detector off
-SWITCHES = {"level_high": "high_level_margin_m", "level_low": "low_volume_m3",
-            "change": "change_fraction"}  # fmt: skip
+SWITCHES = {
+    "level_high": "high_level_margin_m",
+    "level_low": "low_volume_m3",
+    "change": "change_fraction",
+}
 
 
 def switched_off(cfg: AlarmsConfig) -> dict[str, str]:
@@ -274,18 +306,30 @@ def switched_off(cfg: AlarmsConfig) -> dict[str, str]:
     again, so an alarm it raised would otherwise stay raised for good."""
     if not cfg.enabled:
         return {kind: "alarms switched off (alarms.enabled = false)" for kind in ALARM_TYPES}
-    return {kind: f"detector switched off (alarms.{key} not set)"
-            for kind, key in SWITCHES.items() if getattr(cfg, key) is None}  # fmt: skip
+    return {
+        kind: f"detector switched off (alarms.{key} not set)"
+        for kind, key in SWITCHES.items()
+        if getattr(cfg, key) is None
+    }
 
 
-def clear_switched_off(state: AlarmState, cfg: AlarmsConfig,
-                       scan_id: str | None) -> tuple[list[dict[str, Any]], AlarmState]:
+def clear_switched_off(
+    state: AlarmState, cfg: AlarmsConfig, scan_id: str | None
+) -> tuple[list[dict[str, Any]], AlarmState]:
     """`cleared` events for the active alarms whose detector the config switched off (the
     agent calls it at start and on reload too, so a clear does not wait for the next scan)."""
     off = switched_off(cfg)
-    events = [{"type": kind, "state": "cleared", "severity": raised.get("severity", "warning"),
-               "scan_id": scan_id, "message": off[kind]}
-              for kind, raised in state.active.items() if kind in off]  # fmt: skip
+    events = [
+        {
+            "type": kind,
+            "state": "cleared",
+            "severity": raised.get("severity", "warning"),
+            "scan_id": scan_id,
+            "message": off[kind],
+        }
+        for kind, raised in state.active.items()
+        if kind in off
+    ]
     if not events:
         return [], state
     active = {k: v for k, v in state.active.items() if k not in off}
@@ -294,8 +338,13 @@ def clear_switched_off(state: AlarmState, cfg: AlarmsConfig,
 
 def _event(kind: str, state: str, finding: Finding, scan_id: str) -> dict[str, Any]:
     """A `silo-alarm/1` event body (telemetry adds the envelope)."""
-    event: dict[str, Any] = {"type": kind, "state": state, "severity": finding.severity,
-                             "scan_id": scan_id, "message": finding.message}  # fmt: skip
+    event: dict[str, Any] = {
+        "type": kind,
+        "state": state,
+        "severity": finding.severity,
+        "scan_id": scan_id,
+        "message": finding.message,
+    }
     event.update(finding.details)
     return event
 
@@ -342,19 +391,29 @@ def evaluate(
     volume = state.last_volume_m3
     if inputs.valid and inputs.volume_m3 is not None:
         volume = inputs.volume_m3
-    return events, replace(state, active=active, baseline_scan_id=baseline, last_volume_m3=volume,
-                           drift=drift)
+    return events, replace(
+        state, active=active, baseline_scan_id=baseline, last_volume_m3=volume, drift=drift
+    )
 
 
-def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
-                       previous: Mapping[str, Any], active: dict[str, Mapping[str, Any]],
-                       events: list[dict[str, Any]]) -> dict[str, Any]:  # fmt: skip
+def _calibration_drift(
+    inputs: Inputs,
+    calibration: CalibrationConfig,
+    previous: Mapping[str, Any],
+    active: dict[str, Mapping[str, Any]],
+    events: list[dict[str, Any]],
+) -> dict[str, Any]:
     """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
     from silo_agent.drift import DEFAULT_GRAVITY_TOLERANCE_DEG, DriftState, drift_step
 
     tolerances = inputs.gravity_tolerance_deg or DEFAULT_GRAVITY_TOLERANCE_DEG
-    state, changes = drift_step(DriftState.from_json(previous), inputs.registration_residual_m,
-                                inputs.gravity_deg, calibration, tolerances)
+    state, changes = drift_step(
+        DriftState.from_json(previous),
+        inputs.registration_residual_m,
+        inputs.gravity_deg,
+        calibration,
+        tolerances,
+    )
     was = "calibration" in active
     drifted = sorted(state.raised)
     if drifted and not was:
@@ -364,8 +423,9 @@ def _calibration_drift(inputs: Inputs, calibration: CalibrationConfig,
         if raised:  # AlarmPayload's value / threshold: the worst of them
             worst = max(raised, key=lambda c: c.value / c.threshold)
             details = {"value": worst.value, "threshold": worst.threshold}
-        event = _event("calibration", "raised", Finding(True, "warning", message, details),
-                       inputs.scan_id)
+        event = _event(
+            "calibration", "raised", Finding(True, "warning", message, details), inputs.scan_id
+        )
         active["calibration"] = event
         events.append(event)
     elif was and not drifted:

@@ -118,15 +118,24 @@ class AuditCache:
         return target
 
     @staticmethod
-    def add_result(directory: Path, summary: dict[str, Any], heightmap: HeightMap | None,
-                   inputs: dict[str, Any]) -> None:
+    def add_result(
+        directory: Path,
+        summary: dict[str, Any],
+        heightmap: HeightMap | None,
+        inputs: dict[str, Any],
+    ) -> None:
         """Keep the published result, its height map and processing inputs with the scan."""
         write_atomic(directory / INPUTS, dump_json(inputs))
         if heightmap is not None:
             buffer = io.BytesIO()
-            np.savez_compressed(buffer, origin=np.asarray(heightmap.origin),
-                                step=np.asarray(heightmap.step), heights=heightmap.heights,
-                                observed=heightmap.observed, inside=heightmap.inside)  # fmt: skip
+            np.savez_compressed(
+                buffer,
+                origin=np.asarray(heightmap.origin),
+                step=np.asarray(heightmap.step),
+                heights=heightmap.heights,
+                observed=heightmap.observed,
+                inside=heightmap.inside,
+            )
             write_atomic(directory / HEIGHTMAP, buffer.getvalue())
         write_atomic(directory / RESULT, dump_json(summary))
 
@@ -173,8 +182,10 @@ class AuditCache:
             with np.load(path) as data:
                 return HeightMap(
                     origin=(float(data["origin"][0]), float(data["origin"][1])),
-                    step=float(data["step"]), heights=data["heights"],
-                    observed=data["observed"].astype(bool), inside=data["inside"],
+                    step=float(data["step"]),
+                    heights=data["heights"],
+                    observed=data["observed"].astype(bool),
+                    inside=data["inside"],
                 )
         except (OSError, KeyError, ValueError):
             return None
@@ -228,8 +239,11 @@ class AuditCache:
             scan_id = path.name[1:].rpartition(".")[0]
             if self._ours.fullmatch(scan_id) and path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path, ignore_errors=True)
-                log.info("audit staging directory removed", path=str(path),
-                         reason="left by an interrupted scan write")
+                log.info(
+                    "audit staging directory removed",
+                    path=str(path),
+                    reason="left by an interrupted scan write",
+                )
 
     # ------------------------------------------------------------ export
 

@@ -52,8 +52,11 @@ def scan_dirs(targets: Sequence[Path]) -> list[Path]:
     found: list[Path] = []
     for target in targets:
         if target.is_dir() and not (target / MANIFEST).exists():
-            children = sorted(c for c in target.iterdir()
-                              if not c.name.startswith(".") and (c / MANIFEST).is_file())
+            children = sorted(
+                c
+                for c in target.iterdir()
+                if not c.name.startswith(".") and (c / MANIFEST).is_file()
+            )
             if children:
                 found += children
                 continue
@@ -72,8 +75,9 @@ def process_dir(directory: Path, options: Options) -> Processed:
 
     name = str(directory)
     try:
-        _scan, result, summary = process_directory(directory, options.config, options.grid_step,
-                                                   options.method)
+        _scan, result, summary = process_directory(
+            directory, options.config, options.grid_step, options.method
+        )
     except ScanError as exc:  # its message names the file already
         return Processed(name, DATA_ERROR, error=str(exc))
     except LimitExceeded as exc:  # a grid or cloud past the documented limits
@@ -81,8 +85,9 @@ def process_dir(directory: Path, options: Options) -> Processed:
     except (ConfigError, ModelError) as exc:
         return Processed(name, CONFIG_ERROR, error=f"{name}: {exc}")
     except Exception as exc:  # a bug or an odd scan must not stop the rest of a batch
-        return Processed(name, FAILURE,
-                         error=f"{name}: processing failed: {type(exc).__name__}: {exc}")
+        return Processed(
+            name, FAILURE, error=f"{name}: processing failed: {type(exc).__name__}: {exc}"
+        )
     if options.json:
         return Processed(name, 0, json.dumps({**summary, "scan_dir": name}, allow_nan=False))
     return Processed(name, 0, result.describe())
@@ -141,6 +146,9 @@ def run(targets: Sequence[Path], options: Options, jobs: int = 1) -> int:
         progress.update(done, Path(outcome.scan_dir).name)
     progress.clear()
     if len(dirs) > 1:
-        print(f"silo-agent: {len(dirs) - len(failed)} of {len(dirs)} scans processed"
-              + (f", {len(failed)} failed" if failed else ""), file=sys.stderr)  # fmt: skip
+        print(
+            f"silo-agent: {len(dirs) - len(failed)} of {len(dirs)} scans processed"
+            + (f", {len(failed)} failed" if failed else ""),
+            file=sys.stderr,
+        )
     return failed[0].status if failed else 0

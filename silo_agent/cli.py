@@ -158,8 +158,13 @@ def cmd_scan(args: argparse.Namespace) -> int:
         print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
     if not capture.clouds:
         return _fail("no camera delivered a cloud; no scan written", FAILURE)
-    scan = new_scan(config, new_scan_id(config, started, cache.names()), started,
-                    capture.clouds, capture.failures)  # fmt: skip
+    scan = new_scan(
+        config,
+        new_scan_id(config, started, cache.names()),
+        started,
+        capture.clouds,
+        capture.failures,
+    )
     try:  # audit first: the raw scan is kept even if processing fails
         directory = cache.write_scan(scan, scan.extra[CONFIG_KEY])
     except (ScanError, OSError) as exc:
@@ -201,7 +206,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     live = [camera for camera in config.cameras if camera.source == "realsense"]
     if not live:
-        return _fail(f"{args.config}: no live cameras (source = \"realsense\") to record", FAILURE)
+        return _fail(f'{args.config}: no live cameras (source = "realsense") to record', FAILURE)
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
     for camera in live:  # one after another: several D455s streaming at once saturate USB
@@ -257,13 +262,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             for failure in capture.failures:
                 print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
             if capture.failures or not capture.clouds:
-                return _fail("calibration needs every camera; "
-                             f"{len(capture.failures)} failed, no calibration done", FAILURE)
+                return _fail(
+                    "calibration needs every camera; "
+                    f"{len(capture.failures)} failed, no calibration done",
+                    FAILURE,
+                )
             scan = _new_scan(config, capture.clouds, capture.failures, started)
             suffix = "" if captures == 1 else f"-{number + 1}of{captures}"
             try:  # keep the calibration scan for audit, like any scan
-                directory = write_scan(scan, config.audit.directory
-                                       / f"{scan.scan_id}-calibration{suffix}")
+                directory = write_scan(
+                    scan, config.audit.directory / f"{scan.scan_id}-calibration{suffix}"
+                )
                 print(f"calibration scan written to {directory}", file=sys.stderr)
             except (ScanError, OSError) as exc:
                 print(f"silo-agent: warning: calibration scan not kept: {exc}", file=sys.stderr)
@@ -276,9 +285,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         return _fail(str(exc), EX_DATAERR)
     try:
         start = start_poses(config, scan)
-        result = calibrate(scan, config.calibration, floor=args.floor,
-                           site=site_from_config(config), start=start,
-                           grid_step=config.reconstruction.grid_step_m)
+        result = calibrate(
+            scan,
+            config.calibration,
+            floor=args.floor,
+            site=site_from_config(config),
+            start=start,
+            grid_step=config.reconstruction.grid_step_m,
+        )
     except CalibrationError as exc:
         return _fail(f"{source}: {exc}", EX_DATAERR if isinstance(exc, SerialMismatch) else FAILURE)
     backup = None
@@ -342,8 +356,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     scene = make_scene(args.scene, args.grain)
     rig = SimRig(scene)
     try:
-        scan = simulate(scene, args.views, args.seed, args.calib_error, args.grid_step,
-                        layout=args.layout, color=args.color, rig=rig)
+        scan = simulate(
+            scene,
+            args.views,
+            args.seed,
+            args.calib_error,
+            args.grid_step,
+            layout=args.layout,
+            color=args.color,
+            rig=rig,
+        )
     except ValueError as exc:  # a layout that does not fit the scene
         return _fail(str(exc), USAGE)
     try:
@@ -351,14 +373,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     except ScanError as exc:
         return _fail(str(exc), FAILURE)
     points = sum(len(c.points) for c in scan.cameras)
-    print(f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
-          f"{points} points, truth {scene.volume_m3:.4f} m³")
+    print(
+        f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
+        f"{points} points, truth {scene.volume_m3:.4f} m³"
+    )
     if args.record is not None:
         from silo_agent.capture.sim_recording import record_views
 
         views = plan_views(scene, args.views, args.seed, args.calib_error, args.layout)
-        for path in record_views(rig, views, args.seed, args.record, args.record_frames,
-                                 args.color):
+        for path in record_views(
+            rig, views, args.seed, args.record, args.record_frames, args.color
+        ):
             print(f"{path}: {args.record_frames} depth frames")
     return OK
 
@@ -374,8 +399,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     status = agent.run()
     last = agent.last_outcome
     if args.scans is not None and last is not None and last.summary is not None:
-        print(json.dumps(last.summary, allow_nan=False) if args.json
-              else _describe_summary(last.summary))  # fmt: skip
+        print(
+            json.dumps(last.summary, allow_nan=False)
+            if args.json
+            else _describe_summary(last.summary)
+        )
     return status
 
 
@@ -390,8 +418,10 @@ def _describe_summary(summary: dict) -> str:
         lines.append(f"volume    {volume:.4f} m³" + (f"   mass {mass:.3f} t" if mass else ""))
     lines.append(f"coverage  {summary['coverage'] * 100:.1f} % of the region observed")
     if level:
-        lines.append(f"level     min {level['min']:.3f}  mean {level['mean']:.3f}  "
-                     f"max {level['max']:.3f} m above floor")  # fmt: skip
+        lines.append(
+            f"level     min {level['min']:.3f}  mean {level['mean']:.3f}  "
+            f"max {level['max']:.3f} m above floor"
+        )
     valid = "yes" if summary["valid"] else f"NO: {summary['invalid_reason']}"
     lines.append(f"valid     {valid}")
     lines.append(f"piles     {len(summary.get('piles') or [])}")
@@ -432,8 +462,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         for line in diff:
             print(f"  {line}")
         return FAILURE
-    print(f"{directory.name}: replay identical to the published result "
-          f"(volume {again.get('volume_m3')} m³; timings not compared)")  # fmt: skip
+    print(
+        f"{directory.name}: replay identical to the published result "
+        f"(volume {again.get('volume_m3')} m³; timings not compared)"
+    )
     return OK
 
 
@@ -450,14 +482,18 @@ def cmd_scans(args: argparse.Namespace) -> int:
                 result = json.loads((e.path / RESULT).read_text(encoding="utf-8"))
                 volume = result.get("volume_m3")
                 what = (f"{volume:.4f} m³" if volume is not None else "no volume") + (
-                    "" if result.get("valid") else " (invalid)")
+                    "" if result.get("valid") else " (invalid)"
+                )
             except (OSError, ValueError):
                 what = "no result"
-            print(f"{e.scan_id}  {e.captured_at:%Y-%m-%dT%H:%M:%SZ}  "
-                  f"{e.bytes / 1e6:8.2f} MB  {what}")
+            print(
+                f"{e.scan_id}  {e.captured_at:%Y-%m-%dT%H:%M:%SZ}  {e.bytes / 1e6:8.2f} MB  {what}"
+            )
         total = sum(e.bytes for e in entries)
-        print(f"{len(entries)} scan(s), {total / 1e6:.2f} MB of {cache.cfg.max_bytes / 1e6:.0f} MB"
-              f" in {cache.directory}")  # fmt: skip
+        print(
+            f"{len(entries)} scan(s), {total / 1e6:.2f} MB of {cache.cfg.max_bytes / 1e6:.0f} MB"
+            f" in {cache.directory}"
+        )
         return OK
     if args.scan_id is None:
         return _fail(f"scans {args.action} needs a SCAN_ID", USAGE)
@@ -514,18 +550,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_check_config)
 
     p = sub.add_parser("process", help="reconstruct silo-scan/1 directories offline")
-    p.add_argument("scan_dirs", type=Path, nargs="+", metavar="DIR",
-                   help="a scan directory, or a directory of them (an audit cache)")
+    p.add_argument(
+        "scan_dirs",
+        type=Path,
+        nargs="+",
+        metavar="DIR",
+        help="a scan directory, or a directory of them (an audit cache)",
+    )
     p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
     p.add_argument("--grid-step", type=float, metavar="METRES")
     p.add_argument(
-        "--method", choices=METHODS,
+        "--method",
+        choices=METHODS,
         help=f"reconstruction method (baselines for comparison); default {DEFAULT_METHOD}",
     )
-    p.add_argument("--json", action="store_true",
-                   help="one JSON object per scan, one per line, with its scan_dir")
-    p.add_argument("--jobs", type=_positive, default=1, metavar="N",
-                   help="process N scans at a time in worker processes (default 1)")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="one JSON object per scan, one per line, with its scan_dir",
+    )
+    p.add_argument(
+        "--jobs",
+        type=_positive,
+        default=1,
+        metavar="N",
+        help="process N scans at a time in worker processes (default 1)",
+    )
     p.set_defaults(handler=cmd_process)
 
     p = sub.add_parser("devices", help="list connected RealSense cameras")
@@ -548,40 +598,83 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("calibrate", help="level and register the cameras from calibration scans")
     p.add_argument("--config", type=Path, required=True, metavar="FILE")
     source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--scan", type=Path, metavar="DIR", action="append",
-                        help="a silo-scan/1 calibration scan; repeat it to pool several scans "
-                             "taken one after another (their noise averages)")
+    source.add_argument(
+        "--scan",
+        type=Path,
+        metavar="DIR",
+        action="append",
+        help="a silo-scan/1 calibration scan; repeat it to pool several scans "
+        "taken one after another (their noise averages)",
+    )
     source.add_argument("--capture", action="store_true", help="capture with every camera")
-    p.add_argument("--captures", type=int, metavar="N",
-                   help="with --capture: take N captures in a row and pool them (default 1)")
-    p.add_argument("--floor", action="store_true",
-                   help="the floor z = floor_z is visible around the grain: level on it")
-    p.add_argument("--write", action="store_true",
-                   help="update the config's extrinsics in place (comments kept, backup made)")
+    p.add_argument(
+        "--captures",
+        type=int,
+        metavar="N",
+        help="with --capture: take N captures in a row and pool them (default 1)",
+    )
+    p.add_argument(
+        "--floor",
+        action="store_true",
+        help="the floor z = floor_z is visible around the grain: level on it",
+    )
+    p.add_argument(
+        "--write",
+        action="store_true",
+        help="update the config's extrinsics in place (comments kept, backup made)",
+    )
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.set_defaults(handler=cmd_calibrate)
 
     p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
-    p.add_argument("--scene", required=True,  # sim.SCENES, not imported: no numpy at start-up
-                   choices=["cone", "piles", "ridge", "crater", "full", "flat", "empty",
-                            "bay-cone"])
-    p.add_argument("--views", required=True, type=_views, metavar="A1,A5",
-                   help="camera positions A1-A8 (midpoints A1 A3 A5 A7, corners A2 A4 A6 A8)")
+    p.add_argument(
+        "--scene",
+        required=True,  # sim.SCENES, not imported: no numpy at start-up
+        choices=["cone", "piles", "ridge", "crater", "full", "flat", "empty", "bay-cone"],
+    )
+    p.add_argument(
+        "--views",
+        required=True,
+        type=_views,
+        metavar="A1,A5",
+        help="camera positions A1-A8 (midpoints A1 A3 A5 A7, corners A2 A4 A6 A8)",
+    )
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="new scan directory")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--calib-error", type=_calib_error, default=(0.0, 0.0), metavar="DEG,M",
-                   help="true poses off the written extrinsics by DEG degrees and M metres")
-    p.add_argument("--grid-step", type=float, metavar="M",
-                   default=DEFAULT_GRID_STEP_M,
-                   help="grid step written into the scan's reconstruction settings")
+    p.add_argument(
+        "--calib-error",
+        type=_calib_error,
+        default=(0.0, 0.0),
+        metavar="DEG,M",
+        help="true poses off the written extrinsics by DEG degrees and M metres",
+    )
+    p.add_argument(
+        "--grid-step",
+        type=float,
+        metavar="M",
+        default=DEFAULT_GRID_STEP_M,
+        help="grid step written into the scan's reconstruction settings",
+    )
     p.add_argument("--grain", default=DEFAULT_GRAIN, choices=GRAINS)
-    p.add_argument("--layout", choices=LAYOUTS,
-                   help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)")
+    p.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)",
+    )
     p.add_argument("--color", action="store_true", help="colour the points (normal shading)")
-    p.add_argument("--record", type=Path, metavar="DIR",
-                   help="also write one rosbag2 <serial>.db3 recording per camera into DIR")
-    p.add_argument("--record-frames", type=_positive, default=40, metavar="N",
-                   help="depth frames per recording (default 40: 30 warm-up + 10 aggregated)")
+    p.add_argument(
+        "--record",
+        type=Path,
+        metavar="DIR",
+        help="also write one rosbag2 <serial>.db3 recording per camera into DIR",
+    )
+    p.add_argument(
+        "--record-frames",
+        type=_positive,
+        default=40,
+        metavar="N",
+        help="depth frames per recording (default 40: 30 warm-up + 10 aggregated)",
+    )
     p.set_defaults(handler=cmd_simulate)
 
     return parser

@@ -78,8 +78,10 @@ class DriftState:
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> DriftState:
-        return cls({str(k): int(v) for k, v in data.get("runs", {}).items()},
-                   frozenset(data.get("raised", ())))  # fmt: skip
+        return cls(
+            {str(k): int(v) for k, v in data.get("runs", {}).items()},
+            frozenset(data.get("raised", ())),
+        )
 
 
 def drift_step(
@@ -158,9 +160,12 @@ def drift_step(
 class DriftMonitor:
     """A stateful wrapper of `drift_step` for the daemon: `update(result, scan)` per scan."""
 
-    def __init__(self, settings: CalibrationConfig,
-                 gravity_tolerance_deg: Mapping[str, float] | float = DEFAULT_GRAVITY_TOLERANCE_DEG,
-                 state: DriftState | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        settings: CalibrationConfig,
+        gravity_tolerance_deg: Mapping[str, float] | float = DEFAULT_GRAVITY_TOLERANCE_DEG,
+        state: DriftState | None = None,
+    ) -> None:
         self.settings = settings
         self.gravity_tolerance_deg = gravity_tolerance_deg
         self.state = state or DriftState()

@@ -175,7 +175,10 @@ def _boundary_band(
 
 
 def cell_fractions(
-    polygon: np.ndarray, origin: tuple[float, float], step: float, shape: tuple[int, int],
+    polygon: np.ndarray,
+    origin: tuple[float, float],
+    step: float,
+    shape: tuple[int, int],
     supersample: int = 16,
 ) -> np.ndarray:
     """Fraction (0..1) of each grid cell inside `polygon`; shape = (rows along y, cols along x).

@@ -25,32 +25,58 @@ class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
-        self.scans = Counter("silo_agent_scans", "Scans by outcome (ok, invalid, failed)",
-                             ["outcome"], registry=r)
-        self.stage_seconds = Histogram("silo_agent_stage_duration_seconds",
-                                       "Duration of each scan stage", ["stage"],
-                                       buckets=STAGE_BUCKETS, registry=r)
-        self.volume = Gauge("silo_agent_last_volume_cubic_meters",
-                            "Volume of the last valid scan", registry=r)
-        self.mass = Gauge("silo_agent_last_mass_kilograms",
-                          "Mass of the last valid scan (volume x silo.bulk_density_t_m3)",
-                          registry=r)
-        self.coverage = Gauge("silo_agent_last_coverage_ratio",
-                              "Observed share of the region in the last scan", registry=r)
-        self.last_scan = Gauge("silo_agent_last_scan_timestamp_seconds",
-                               "Capture time of the last scan, whatever its outcome",
-                               registry=r)
-        self.last_valid_scan = Gauge("silo_agent_last_valid_scan_timestamp_seconds",
-                                     "Capture time of the last valid scan (the volume's)",
-                                     registry=r)
-        self.outbox_pending = Gauge("silo_agent_outbox_pending_messages",
-                                    "Messages waiting for a broker acknowledgement", registry=r)
-        self.outbox_dropped = Counter("silo_agent_outbox_dropped_messages",
-                                      "Messages dropped by the outbox bounds", registry=r)
-        self.camera_up = Gauge("silo_agent_camera_up", "1 if the camera delivered its last cloud",
-                               ["serial"], registry=r)
-        self.alarm_active = Gauge("silo_agent_alarm_active", "1 while the alarm is raised",
-                                  ["type"], registry=r)
+        self.scans = Counter(
+            "silo_agent_scans", "Scans by outcome (ok, invalid, failed)", ["outcome"], registry=r
+        )
+        self.stage_seconds = Histogram(
+            "silo_agent_stage_duration_seconds",
+            "Duration of each scan stage",
+            ["stage"],
+            buckets=STAGE_BUCKETS,
+            registry=r,
+        )
+        self.volume = Gauge(
+            "silo_agent_last_volume_cubic_meters", "Volume of the last valid scan", registry=r
+        )
+        self.mass = Gauge(
+            "silo_agent_last_mass_kilograms",
+            "Mass of the last valid scan (volume x silo.bulk_density_t_m3)",
+            registry=r,
+        )
+        self.coverage = Gauge(
+            "silo_agent_last_coverage_ratio",
+            "Observed share of the region in the last scan",
+            registry=r,
+        )
+        self.last_scan = Gauge(
+            "silo_agent_last_scan_timestamp_seconds",
+            "Capture time of the last scan, whatever its outcome",
+            registry=r,
+        )
+        self.last_valid_scan = Gauge(
+            "silo_agent_last_valid_scan_timestamp_seconds",
+            "Capture time of the last valid scan (the volume's)",
+            registry=r,
+        )
+        self.outbox_pending = Gauge(
+            "silo_agent_outbox_pending_messages",
+            "Messages waiting for a broker acknowledgement",
+            registry=r,
+        )
+        self.outbox_dropped = Counter(
+            "silo_agent_outbox_dropped_messages",
+            "Messages dropped by the outbox bounds",
+            registry=r,
+        )
+        self.camera_up = Gauge(
+            "silo_agent_camera_up",
+            "1 if the camera delivered its last cloud",
+            ["serial"],
+            registry=r,
+        )
+        self.alarm_active = Gauge(
+            "silo_agent_alarm_active", "1 while the alarm is raised", ["type"], registry=r
+        )
         for outcome in SCAN_OUTCOMES:
             self.scans.labels(outcome)
         self.set_alarms(())

@@ -62,26 +62,43 @@ class Outcome:
     events: list[dict[str, Any]] = field(default_factory=list)
 
 
-def failure_summary(scan_id: str, captured_at: str, config: Config, reason: str,
-                    failures: list[CameraFailure], timings: dict[str, float]) -> dict[str, Any]:
+def failure_summary(
+    scan_id: str,
+    captured_at: str,
+    config: Config,
+    reason: str,
+    failures: list[CameraFailure],
+    timings: dict[str, float],
+) -> dict[str, Any]:
     """A `P/scan` for a scan that produced no result."""
     return {
-        "scan_id": scan_id, "captured_at": captured_at, "method": config.reconstruction.method,
-        "volume_m3": None, "mass_t": None, "coverage": 0.0,
+        "scan_id": scan_id,
+        "captured_at": captured_at,
+        "method": config.reconstruction.method,
+        "volume_m3": None,
+        "mass_t": None,
+        "coverage": 0.0,
         "grid_step_m": config.reconstruction.grid_step_m,
-        "surface": None, "level": None, "valid": False, "invalid_reason": reason,
+        "surface": None,
+        "level": None,
+        "valid": False,
+        "invalid_reason": reason,
         "degraded": bool(failures),
-        "cameras": {"used": [], "failed": [{"serial": f.serial, "error": f.error}
-                                           for f in failures]},
-        "piles": [], "timings": {k: round(v, 4) for k, v in timings.items()},
-    }  # fmt: skip
+        "cameras": {
+            "used": [],
+            "failed": [{"serial": f.serial, "error": f.error} for f in failures],
+        },
+        "piles": [],
+        "timings": {k: round(v, 4) for k, v in timings.items()},
+    }
 
 
 class Pipeline:
     """Runs scans for the agent; holds what carries from scan to scan (alarm state, piles)."""
 
-    def __init__(self, config: Config, telemetry: Telemetry, cache: AuditCache,
-                 metrics: Metrics) -> None:
+    def __init__(
+        self, config: Config, telemetry: Telemetry, cache: AuditCache, metrics: Metrics
+    ) -> None:
         self.config = config
         self.telemetry = telemetry
         self.cache = cache
@@ -97,8 +114,9 @@ class Pipeline:
         except FileNotFoundError:
             return AlarmState()
         except (OSError, ValueError, TypeError, AttributeError) as exc:
-            log.warning("alarm state unreadable, starting afresh", path=str(self.state_path),
-                        error=str(exc))
+            log.warning(
+                "alarm state unreadable, starting afresh", path=str(self.state_path), error=str(exc)
+            )
             return AlarmState()
 
     def _save_state(self) -> None:
@@ -123,8 +141,9 @@ class Pipeline:
 
     # ------------------------------------------------------------ one scan
 
-    def run(self, scan_id: str, started: datetime, deadline: float,
-            abandoned: threading.Event) -> Outcome:
+    def run(
+        self, scan_id: str, started: datetime, deadline: float, abandoned: threading.Event
+    ) -> Outcome:
         """One scan; never raises except ScanAbandoned."""
         config = self.config
         captured_at = f"{started:%Y-%m-%dT%H:%M:%SZ}"
@@ -156,13 +175,20 @@ class Pipeline:
             self.metrics.camera_up.labels(serial).set(1 if camera_state == "ok" else 0)
         self.telemetry.set_status(cameras=cameras)
         for failure in capture.failures:
-            log.warning("camera failed", scan_id=scan_id, serial=failure.serial,
-                        error=failure.error)
+            log.warning(
+                "camera failed", scan_id=scan_id, serial=failure.serial, error=failure.error
+            )
         check()
         failed = tuple((f.serial, f.error) for f in capture.failures)
         if not capture.clouds:
-            return self._failed(scan_id, captured_at, "capture: no camera delivered a cloud",
-                                capture.failures, timings, failed)
+            return self._failed(
+                scan_id,
+                captured_at,
+                "capture: no camera delivered a cloud",
+                capture.failures,
+                timings,
+                failed,
+            )
 
         scan = new_scan(config, scan_id, started, capture.clouds, capture.failures)
         directory, cache_full = self._write(scan)
@@ -174,8 +200,15 @@ class Pipeline:
             analysed = analyse_scan(scan, analysis_of(scan), previous)
         except Exception as exc:  # a bug or a bad model must not stop the agent
             log.exception("processing failed", scan_id=scan_id)
-            return self._failed(scan_id, captured_at, f"processing: {exc}", capture.failures,
-                                timings, failed, cache_full)
+            return self._failed(
+                scan_id,
+                captured_at,
+                f"processing: {exc}",
+                capture.failures,
+                timings,
+                failed,
+                cache_full,
+            )
         t = lap("reconstruct", t)
         check()
         summary = summarise(analysed, scan, timings)
@@ -184,17 +217,23 @@ class Pipeline:
         result = analysed.reconstruction
         surface = summary.get("surface") or {}
         inputs = Inputs(
-            scan_id=scan_id, heightmap=result.heightmap, volume_m3=result.volume_m3,
-            coverage=result.coverage, valid=result.valid, floor_z=config.silo.floor_z,
-            ceiling_z=config.silo.ceiling_z, max_z=surface.get("max_z"),
-            failed_cameras=failed, cache_full=cache_full, baseline=self._baseline(),
+            scan_id=scan_id,
+            heightmap=result.heightmap,
+            volume_m3=result.volume_m3,
+            coverage=result.coverage,
+            valid=result.valid,
+            floor_z=config.silo.floor_z,
+            ceiling_z=config.silo.ceiling_z,
+            max_z=surface.get("max_z"),
+            failed_cameras=failed,
+            cache_full=cache_full,
+            baseline=self._baseline(),
             baseline_scan_id=self.config.alarms.baseline_scan_id or self.state.baseline_scan_id,
             registration_residual_m={k: r.median_m for k, r in result.registration.items()},
             gravity_deg=gravity_angles(scan.cameras),
             gravity_tolerance_deg={c.serial: c.gravity_tolerance_deg for c in config.cameras},
         )
-        events, state = evaluate(self.state, inputs, config.alarms,
-                                 calibration=config.calibration)
+        events, state = evaluate(self.state, inputs, config.alarms, calibration=config.calibration)
         t = lap("alarms", t)
         check()
 
@@ -206,9 +245,14 @@ class Pipeline:
         self.cache.enforce(self.protected())
         outcome = "ok" if result.valid else "invalid"
         self._count(outcome, summary)
-        log.info("scan finished", scan_id=scan_id, outcome=outcome, volume_m3=result.volume_m3,
-                 coverage=round(result.coverage, 4), alarms=[
-                     f"{e['type']}:{e['state']}" for e in events])  # fmt: skip
+        log.info(
+            "scan finished",
+            scan_id=scan_id,
+            outcome=outcome,
+            volume_m3=result.volume_m3,
+            coverage=round(result.coverage, 4),
+            alarms=[f"{e['type']}:{e['state']}" for e in events],
+        )
         return Outcome(scan_id, outcome, result.invalid_reason, summary, directory, events)
 
     def _write(self, scan: Scan) -> tuple[Path | None, bool]:
@@ -220,8 +264,11 @@ class Pipeline:
                 return self.cache.write_scan(scan, snapshot), False
             except OSError as exc:
                 if not is_disk_full(exc):
-                    log.error("cannot write the scan to the audit cache", scan_id=scan.scan_id,
-                              error=str(exc))
+                    log.error(
+                        "cannot write the scan to the audit cache",
+                        scan_id=scan.scan_id,
+                        error=str(exc),
+                    )
                     return None, True
                 if attempt == 0:
                     removed = self.cache.evict_for_space(self.protected())
@@ -232,8 +279,9 @@ class Pipeline:
         log.error("disk still full, scan published uncached", scan_id=scan.scan_id)
         return None, True
 
-    def _keep_result(self, directory: Path, summary: dict[str, Any], result: AnalysisResult,
-                     previous: list[Pile]) -> bool:
+    def _keep_result(
+        self, directory: Path, summary: dict[str, Any], result: AnalysisResult, previous: list[Pile]
+    ) -> bool:
         """result.json, the height map and inputs.json into the scan's directory; on a full
         disk evict older scans and retry once. False if they could not all be kept."""
         try:
@@ -249,17 +297,30 @@ class Pipeline:
                 return True
             except OSError as exc:
                 error = exc
-        log.error("cannot keep the result with the scan", scan_id=directory.name,
-                  error=str(error))
+        log.error("cannot keep the result with the scan", scan_id=directory.name, error=str(error))
         return False
 
-    def _failed(self, scan_id: str, captured_at: str, reason: str,
-                failures: list[CameraFailure], timings: dict[str, float],
-                failed: tuple[tuple[str, str], ...], cache_full: bool = False) -> Outcome:
+    def _failed(
+        self,
+        scan_id: str,
+        captured_at: str,
+        reason: str,
+        failures: list[CameraFailure],
+        timings: dict[str, float],
+        failed: tuple[tuple[str, str], ...],
+        cache_full: bool = False,
+    ) -> Outcome:
         summary = failure_summary(scan_id, captured_at, self.config, reason, failures, timings)
-        inputs = Inputs(scan_id=scan_id, heightmap=None, volume_m3=None, coverage=0.0,
-                        valid=False, failed_cameras=failed, cache_full=cache_full,
-                        reconstructed=False)
+        inputs = Inputs(
+            scan_id=scan_id,
+            heightmap=None,
+            volume_m3=None,
+            coverage=0.0,
+            valid=False,
+            failed_cameras=failed,
+            cache_full=cache_full,
+            reconstructed=False,
+        )
         events, self.state = evaluate(self.state, inputs, self.config.alarms)
         self._save_state()
         try:
@@ -272,13 +333,15 @@ class Pipeline:
         log.error("scan failed", scan_id=scan_id, reason=reason)
         return Outcome(scan_id, "failed", reason, summary, None, events)
 
-    def _publish(self, summary: dict[str, Any], result: Result,
-                 events: list[dict[str, Any]]) -> None:
+    def _publish(
+        self, summary: dict[str, Any], result: Result, events: list[dict[str, Any]]
+    ) -> None:
         self.telemetry.publish_result(summary, result.heightmap)
         for event in events:
             self.telemetry.publish_alarm(event)
-            log.warning("alarm", **{k: v for k, v in event.items() if k != "message"},
-                        text=event["message"])
+            log.warning(
+                "alarm", **{k: v for k, v in event.items() if k != "message"}, text=event["message"]
+            )
 
     def _count(self, outcome: str, summary: dict[str, Any]) -> None:
         m = self.metrics
@@ -303,6 +366,9 @@ class Pipeline:
         self._save_state()
         for event in events:
             self.telemetry.publish_alarm(event)
-            log.info("alarm cleared, its detector is switched off", type=event["type"],
-                     reason=event["message"])
+            log.info(
+                "alarm cleared, its detector is switched off",
+                type=event["type"],
+                reason=event["message"],
+            )
         self.metrics.set_alarms(self.state.active)

@@ -188,11 +188,23 @@ class _Manifest(_Open):
 # ---------------------------------------------------------------- PLY
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
-}  # fmt: skip
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "<i2",
+    "int16": "<i2",
+    "ushort": "<u2",
+    "uint16": "<u2",
+    "int": "<i4",
+    "int32": "<i4",
+    "uint": "<u4",
+    "uint32": "<u4",
+    "float": "<f4",
+    "float32": "<f4",
+    "double": "<f8",
+    "float64": "<f8",
+}
 
 
 @contextmanager
@@ -241,8 +253,9 @@ def _ply_header(path: Path, header: list[str]) -> tuple[int, list[tuple[str, str
     if count is None or count < 0:
         raise ScanError(f"{path}: no 'element vertex N' in the header")
     if count > MAX_CLOUD_POINTS:
-        raise ScanError(f"{path}: {count:,} points, more than the limit of "
-                        f"{MAX_CLOUD_POINTS:,} per cloud")
+        raise ScanError(
+            f"{path}: {count:,} points, more than the limit of {MAX_CLOUD_POINTS:,} per cloud"
+        )
     if [p for p, _ in props[:3]] != ["x", "y", "z"] or any(t != "<f4" for _, t in props[:3]):
         raise ScanError(f"{path}: the first properties must be 'float x', 'float y', 'float z'")
     return count, props
@@ -261,8 +274,10 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
         end = start.find(b"end_header\n")
         if not start.startswith(b"ply\n") or end < 0:
-            raise ScanError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the "
-                            f"first {MAX_PLY_HEADER_BYTES // 1024} KiB)")
+            raise ScanError(
+                f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the "
+                f"first {MAX_PLY_HEADER_BYTES // 1024} KiB)"
+            )
         header = start[:end].decode("ascii", errors="replace").splitlines()
         count, props = _ply_header(path, header)
         dtype = np.dtype(props)
@@ -369,8 +384,10 @@ def read_scan(directory: str | Path) -> Scan:
         points, colors = read_ply(directory / camera.cloud)
         total += len(points)
         if total > MAX_SCAN_POINTS:
-            raise ScanError(f"{directory}: more than the limit of {MAX_SCAN_POINTS:,} points in "
-                            f"all clouds together (at {camera.cloud})")
+            raise ScanError(
+                f"{directory}: more than the limit of {MAX_SCAN_POINTS:,} points in "
+                f"all clouds together (at {camera.cloud})"
+            )
         cameras.append(
             CameraCloud(
                 serial=camera.serial,

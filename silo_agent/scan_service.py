@@ -62,20 +62,31 @@ def new_scan_id(config: Config, started: datetime, taken: set[str]) -> str:
     return scan_id
 
 
-def new_scan(config: Config, scan_id: str, started: datetime, clouds: list[CameraCloud],
-             failures: list[CameraFailure]) -> Scan:
+def new_scan(
+    config: Config,
+    scan_id: str,
+    started: datetime,
+    clouds: list[CameraCloud],
+    failures: list[CameraFailure],
+) -> Scan:
     """A silo-scan/1 `Scan` of one capture, carrying the config snapshot it is processed with."""
     from silo_agent import __version__
     from silo_agent.reconstruct import site_from_config
 
     return Scan(
-        scan_id=scan_id, captured_at=f"{started:%Y-%m-%dT%H:%M:%SZ}", silo_id=config.silo.id,
-        site=site_from_config(config), cameras=clouds,
+        scan_id=scan_id,
+        captured_at=f"{started:%Y-%m-%dT%H:%M:%SZ}",
+        silo_id=config.silo.id,
+        site=site_from_config(config),
+        cameras=clouds,
         reconstruction=config.reconstruction.model_dump(mode="json"),
-        extra={"software_version": __version__, "degraded": bool(failures),
-               "failures": [{"serial": f.serial, "error": f.error} for f in failures],
-               CONFIG_KEY: config.model_dump(mode="json")},
-    )  # fmt: skip
+        extra={
+            "software_version": __version__,
+            "degraded": bool(failures),
+            "failures": [{"serial": f.serial, "error": f.error} for f in failures],
+            CONFIG_KEY: config.model_dump(mode="json"),
+        },
+    )
 
 
 def analysis_of(scan: Scan) -> Analysis:
@@ -85,10 +96,12 @@ def analysis_of(scan: Scan) -> Analysis:
     snapshot = scan.extra.get(CONFIG_KEY) or {}
     manifest = f"{scan.scan_id}/{MANIFEST}"
     settings = _validated(ReconstructionConfig, scan.reconstruction, f"{manifest}: reconstruction")
-    detection = _validated(DetectionConfig, snapshot.get("detection") or {},
-                           f"{manifest}: config.detection")  # fmt: skip
-    calibration = _validated(CalibrationConfig, snapshot.get("calibration") or {},
-                             f"{manifest}: config.calibration")  # fmt: skip
+    detection = _validated(
+        DetectionConfig, snapshot.get("detection") or {}, f"{manifest}: config.detection"
+    )
+    calibration = _validated(
+        CalibrationConfig, snapshot.get("calibration") or {}, f"{manifest}: config.calibration"
+    )
     return Analysis(settings, detection, scan.site, calibration)
 
 
@@ -99,16 +112,21 @@ def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
         raise ScanError(describe_validation_error(exc, source).splitlines()[0]) from None
 
 
-def overridden(analysis: Analysis, config: Config | None, grid_step_m: float | None = None,
-               method: str | None = None) -> Analysis:
+def overridden(
+    analysis: Analysis,
+    config: Config | None,
+    grid_step_m: float | None = None,
+    method: str | None = None,
+) -> Analysis:
     """`process`: the scan's own analysis, then what `config` sets, then the flags (later wins)."""
     from silo_agent.reconstruct import site_from_config
 
     merged = analysis.settings.model_dump()
     if config is not None:
         merged.update(config.reconstruction.model_dump(exclude_unset=True))
-        analysis = Analysis(analysis.settings, config.detection, site_from_config(config),
-                            config.calibration)  # fmt: skip
+        analysis = Analysis(
+            analysis.settings, config.detection, site_from_config(config), config.calibration
+        )
     if grid_step_m is not None:
         merged["grid_step_m"] = grid_step_m
     if method is not None:
@@ -123,8 +141,14 @@ def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> Analys
     """Reconstruct and detect, as every path does it."""
     from silo_agent.analysis import analyse
 
-    return analyse(scan, analysis.settings, analysis.detection, site=analysis.site,
-                   previous=previous, calibration=analysis.calibration)  # fmt: skip
+    return analyse(
+        scan,
+        analysis.settings,
+        analysis.detection,
+        site=analysis.site,
+        previous=previous,
+        calibration=analysis.calibration,
+    )
 
 
 def summarise(result: AnalysisResult, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
@@ -133,9 +157,10 @@ def summarise(result: AnalysisResult, scan: Scan, timings: dict[str, float]) -> 
     summary = result.summary()
     summary["captured_at"] = scan.captured_at
     summary["degraded"] = bool(failures)
-    summary["cameras"] = {"used": [c.serial for c in scan.cameras],
-                          "failed": [{"serial": f["serial"], "error": f["error"]}
-                                     for f in failures]}  # fmt: skip
+    summary["cameras"] = {
+        "used": [c.serial for c in scan.cameras],
+        "failed": [{"serial": f["serial"], "error": f["error"]} for f in failures],
+    }
     summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
     return summary
 
@@ -157,14 +182,16 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             import structlog
 
-            structlog.get_logger(__name__).warning("no pile ids carried over",
-                                                   scan_id=entry.scan_id, error=str(exc))
+            structlog.get_logger(__name__).warning(
+                "no pile ids carried over", scan_id=entry.scan_id, error=str(exc)
+            )
             return []
     return []
 
 
-def keep_result(directory: Path, summary: dict[str, Any], result: AnalysisResult,
-                previous: list[Pile]) -> None:
+def keep_result(
+    directory: Path, summary: dict[str, Any], result: AnalysisResult, previous: list[Pile]
+) -> None:
     """The summary, height map and processing inputs next to the scan, each written atomically."""
     from silo_agent.audit import AuditCache
 
@@ -172,9 +199,12 @@ def keep_result(directory: Path, summary: dict[str, Any], result: AnalysisResult
     AuditCache.add_result(directory, summary, result.reconstruction.heightmap, inputs)
 
 
-def process_directory(directory: Path, config: Config | None = None,
-                      grid_step_m: float | None = None,
-                      method: str | None = None) -> tuple[Scan, AnalysisResult, dict[str, Any]]:
+def process_directory(
+    directory: Path,
+    config: Config | None = None,
+    grid_step_m: float | None = None,
+    method: str | None = None,
+) -> tuple[Scan, AnalysisResult, dict[str, Any]]:
     """`silo-agent process` of one scan directory: (scan, result, summary); nothing written.
 
     Raises ScanError for a bad directory, ConfigError for bad settings, ModelError for a bad

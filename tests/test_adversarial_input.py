@@ -70,52 +70,74 @@ def _under_a_file(tmp_path: Path) -> Path:
 BAD_CONFIGS = {
     "audit directory under a regular file": (
         lambda t: _config(t, audit={"directory": str(_under_a_file(t) / "scans")}),
-        ["audit.directory", "a-file is not a directory"]),
+        ["audit.directory", "a-file is not a directory"],
+    ),
     "audit directory in /proc": (
         lambda t: _config(t, audit={"directory": "/proc/silo-agent-test/scans"}),
-        ["audit.directory", "cannot create files in /proc"]),
+        ["audit.directory", "cannot create files in /proc"],
+    ),
     "outbox under a regular file": (
-        lambda t: _replace(_config(t), str(t / "outbox.sqlite"),
-                           str(_under_a_file(t) / "outbox.sqlite")),
-        ["mqtt.outbox_path", "a-file is not a directory"]),
+        lambda t: _replace(
+            _config(t), str(t / "outbox.sqlite"), str(_under_a_file(t) / "outbox.sqlite")
+        ),
+        ["mqtt.outbox_path", "a-file is not a directory"],
+    ),
     "outbox is a directory": (
         lambda t: _replace(_config(t), str(t / "outbox.sqlite"), str(t)),
-        ["mqtt.outbox_path", "is not a regular file"]),
+        ["mqtt.outbox_path", "is not a regular file"],
+    ),
     "interval overflowing a timedelta": (
         lambda t: _config(t, schedule={"interval_s": 1e300}),
-        ["schedule.interval_s", "less than or equal"]),
+        ["schedule.interval_s", "less than or equal"],
+    ),
     "boolean as a number": (
         lambda t: _config(t, schedule={"interval_s": True}),
-        ["schedule.interval_s", "valid number"]),
+        ["schedule.interval_s", "valid number"],
+    ),
     "string as a port": (
         lambda t: _replace(_config(t), "port = 1\n", 'port = "18951"\n'),
-        ["mqtt.port", "valid integer"]),
+        ["mqtt.port", "valid integer"],
+    ),
     "missing TLS CA file": (
         lambda t: _append(_config(t), f'[mqtt.tls]\nca_file = "{t / "ca.pem"}"'),
-        ["mqtt.tls.ca_file", "ca.pem does not exist"]),
+        ["mqtt.tls.ca_file", "ca.pem does not exist"],
+    ),
     "missing TLS client certificate": (
-        lambda t: _append(_config(t), f'[mqtt.tls]\ncert_file = "{t / "c.pem"}"\n'
-                                      f'key_file = "{_under_a_file(t)}"'),
-        ["mqtt.tls.cert_file", "c.pem does not exist"]),
+        lambda t: _append(
+            _config(t), f'[mqtt.tls]\ncert_file = "{t / "c.pem"}"\nkey_file = "{_under_a_file(t)}"'
+        ),
+        ["mqtt.tls.cert_file", "c.pem does not exist"],
+    ),
     "TLS key that is a directory": (
-        lambda t: _append(_config(t), f'[mqtt.tls]\ncert_file = "{_under_a_file(t)}"\n'
-                                      f'key_file = "{t}"'),
-        ["mqtt.tls.key_file", "is not a regular file"]),
+        lambda t: _append(
+            _config(t), f'[mqtt.tls]\ncert_file = "{_under_a_file(t)}"\nkey_file = "{t}"'
+        ),
+        ["mqtt.tls.key_file", "is not a regular file"],
+    ),
     "empty broker host": (
         lambda t: _replace(_config(t), 'host = "127.0.0.1"', 'host = ""'),
-        ["mqtt.host", "want a host name or IP address, got ''"]),
+        ["mqtt.host", "want a host name or IP address, got ''"],
+    ),
     "sim view that does not exist": (
         lambda t: _replace(_config(t), 'view = "A2"', 'view = "A9"'),
-        ["cameras.0.view", "unknown view 'A9'"]),
+        ["cameras.0.view", "unknown view 'A9'"],
+    ),
     "grid too fine for the region": (
         lambda t: _replace(_config(t), "grid_step_m = 0.05", "grid_step_m = 0.002"),
-        ["reconstruction.grid_step_m", "9,000,000 cells", "limit of 4,000,000"]),
+        ["reconstruction.grid_step_m", "9,000,000 cells", "limit of 4,000,000"],
+    ),
     "camera translation beyond float32": (
-        lambda t: _replace(_config(t), 'view = "A2"',
-                           'view = "A2"\nrotate_deg = [0, 0, 0]\ntranslate_m = [1e39, 0, 0]'),
-        ["cameras.0", "translation beyond"]),
+        lambda t: _replace(
+            _config(t),
+            'view = "A2"',
+            'view = "A2"\nrotate_deg = [0, 0, 0]\ntranslate_m = [1e39, 0, 0]',
+        ),
+        ["cameras.0", "translation beyond"],
+    ),
     "not UTF-8": (
-        lambda t: _latin1(_config(t)), ["agent.toml: not UTF-8", "byte 0xe9 at offset 18"]),
+        lambda t: _latin1(_config(t)),
+        ["agent.toml: not UTF-8", "byte 0xe9 at offset 18"],
+    ),
 }
 
 
@@ -127,8 +149,15 @@ def test_bad_config_fails_check_config_with_78_naming_the_key(tmp_path: Path, ca
     assert not (tmp_path / "scans").exists()  # checking wrote nothing
 
 
-@pytest.mark.parametrize("case", ["audit directory under a regular file", "boolean as a number",
-                                  "missing TLS CA file", "not UTF-8"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "audit directory under a regular file",
+        "boolean as a number",
+        "missing TLS CA file",
+        "not UTF-8",
+    ],
+)
 def test_bad_config_stops_run_with_78_before_anything_starts(tmp_path: Path, case: str):
     make, fragments = BAD_CONFIGS[case]
     config = make(tmp_path)
@@ -158,9 +187,11 @@ def test_a_cron_that_never_fires_is_a_warning(tmp_path: Path):
 
 
 def test_non_utf8_config_on_sighup_is_rejected_and_the_daemon_goes_on(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
-    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                          schedule={"scan_at_start": False})
+    tmp_path: Path, broker, collector_factory
+):
+    config = write_config(
+        tmp_path / "agent.toml", broker.port, tmp_path, schedule={"scan_at_start": False}
+    )
     col = collector_factory(broker, [f"{BASE}/#"])
     agent = Daemon(config, tmp_path)
     try:
@@ -189,8 +220,9 @@ def _first_cloud(scan_dir: Path) -> Path:
 
 
 def _ply_header(*lines: str) -> bytes:
-    return ("\n".join(["ply", "format binary_little_endian 1.0", *lines, "end_header"])
-            + "\n").encode()
+    return (
+        "\n".join(["ply", "format binary_little_endian 1.0", *lines, "end_header"]) + "\n"
+    ).encode()
 
 
 def _process(scan_dir: Path, *args: str) -> subprocess.CompletedProcess:
@@ -211,11 +243,22 @@ def test_device_symlink_cloud_is_refused_not_read_for_ever(scan_dir: Path):
     _one_line_failure(_process(scan_dir), EX_DATAERR, str(cloud), "not a regular file")
 
 
-@pytest.mark.parametrize(("header", "fragment"), [
-    (["element vertex 1", "property float x", "property float y", "property float z",
-      "property float x"], "property 'x' is repeated"),
-    (["element"], "bad element line 'element'"),
-])
+@pytest.mark.parametrize(
+    ("header", "fragment"),
+    [
+        (
+            [
+                "element vertex 1",
+                "property float x",
+                "property float y",
+                "property float z",
+                "property float x",
+            ],
+            "property 'x' is repeated",
+        ),
+        (["element"], "bad element line 'element'"),
+    ],
+)
 def test_malformed_ply_header_is_one_line(scan_dir: Path, header, fragment):
     cloud = _first_cloud(scan_dir)
     cloud.write_bytes(_ply_header(*header) + bytes(16))
@@ -225,13 +268,13 @@ def test_malformed_ply_header_is_one_line(scan_dir: Path, header, fragment):
 def test_cloud_past_the_point_limit_is_refused_before_reading(scan_dir: Path):
     cloud = _first_cloud(scan_dir)
     count = CLOUD_POINT_LIMIT + 1
-    header = _ply_header(f"element vertex {count}", "property float x", "property float y",
-                         "property float z")
+    header = _ply_header(
+        f"element vertex {count}", "property float x", "property float y", "property float z"
+    )
     with open(cloud, "wb") as out:  # sparse: the header announces 120 MB it would be read for
         out.write(header)
         out.truncate(len(header) + 12 * count)
-    _one_line_failure(_process(scan_dir), EX_DATAERR, str(cloud), f"{count:,} points",
-                      "limit")
+    _one_line_failure(_process(scan_dir), EX_DATAERR, str(cloud), f"{count:,} points", "limit")
 
 
 def test_oversized_manifest_is_refused(scan_dir: Path):
@@ -243,8 +286,7 @@ def test_oversized_manifest_is_refused(scan_dir: Path):
 
 def test_deeply_nested_manifest_is_one_line(scan_dir: Path):
     text = (scan_dir / "scan.json").read_text().rstrip().removesuffix("}")
-    (scan_dir / "scan.json").write_text(text + ', "deep": ' + "[" * 100_000 + "]" * 100_000
-                                        + "}")
+    (scan_dir / "scan.json").write_text(text + ', "deep": ' + "[" * 100_000 + "]" * 100_000 + "}")
     _one_line_failure(_process(scan_dir), EX_DATAERR, "scan.json", "nested too deeply")
 
 
@@ -252,22 +294,23 @@ def test_extrinsic_overflowing_float32_is_rejected_not_dropped(scan_dir: Path):
     data = _manifest(scan_dir)
     data["cameras"][1]["extrinsic"][0][3] = 1e39  # finite as float64, inf as float32
     (scan_dir / "scan.json").write_text(json.dumps(data))
-    _one_line_failure(_process(scan_dir), EX_DATAERR, "cameras.1.extrinsic",
-                      "translation beyond")
+    _one_line_failure(_process(scan_dir), EX_DATAERR, "cameras.1.extrinsic", "translation beyond")
 
 
 def test_duplicate_serials_in_the_manifest_are_refused(scan_dir: Path):
     data = _manifest(scan_dir)
     data["cameras"][2]["serial"] = data["cameras"][0]["serial"]
     (scan_dir / "scan.json").write_text(json.dumps(data))
-    _one_line_failure(_process(scan_dir), EX_DATAERR, "cameras", "repeated",
-                      data["cameras"][0]["serial"])
+    _one_line_failure(
+        _process(scan_dir), EX_DATAERR, "cameras", "repeated", data["cameras"][0]["serial"]
+    )
 
 
 def test_grid_past_the_cell_limit_is_refused_before_allocating(scan_dir: Path):
     # the smallest step allowed over the 5 m region: 20.7 million cells, several GB if tried
-    _one_line_failure(_process(scan_dir, "--grid-step", "0.0011"), EX_DATAERR,
-                      "cells", "limit of 4,000,000")
+    _one_line_failure(
+        _process(scan_dir, "--grid-step", "0.0011"), EX_DATAERR, "cells", "limit of 4,000,000"
+    )
 
 
 # ---------------------------------------------------------------- audit cache
@@ -278,25 +321,36 @@ def _cloud(k: int):
 
     def scan(silo: str, when: str) -> Scan:
         points = np.random.default_rng(k).normal(0, 1, (500, 3)).astype(np.float32)
-        return Scan(scan_id=f"{silo}-{when}", captured_at="2026-11-01T06:00:00Z", silo_id=silo,
-                    site=Site(np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float), 0.0),
-                    cameras=[CameraCloud("cam-0", points, np.eye(4))])
+        return Scan(
+            scan_id=f"{silo}-{when}",
+            captured_at="2026-11-01T06:00:00Z",
+            silo_id=silo,
+            site=Site(np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float), 0.0),
+            cameras=[CameraCloud("cam-0", points, np.eye(4))],
+        )
+
     return scan
 
 
 def test_retention_removes_only_this_silos_scans_and_logs_each(tmp_path: Path):
     root = tmp_path / "scans"
     ours = AuditCache(AuditConfig(directory=root, max_bytes=1), "silo-a")
-    mine = [ours.write_scan(_cloud(k)("silo-a", f"2026110{k}T060000Z"), {}).name
-            for k in range(1, 4)]  # fmt: skip
+    mine = [
+        ours.write_scan(_cloud(k)("silo-a", f"2026110{k}T060000Z"), {}).name for k in range(1, 4)
+    ]
     neighbour = AuditCache(AuditConfig(directory=root), "silo-b")
     theirs = neighbour.write_scan(_cloud(9)("silo-b", "20261101T060000Z"), {})
     impostor = root / "silo-a-20261101T070000Z"  # our name, another silo's manifest
     impostor.mkdir()
-    (impostor / "scan.json").write_text(json.dumps({"silo_id": "silo-b",
-                                                    "captured_at": "2026-11-01T07:00:00Z"}))
-    keep = [root / ".git" / "HEAD", root / ".keepme" / "x", root / ".silo-b-20261101T080000Z.ab"
-            / "c.ply", root / "notes.txt"]  # fmt: skip
+    (impostor / "scan.json").write_text(
+        json.dumps({"silo_id": "silo-b", "captured_at": "2026-11-01T07:00:00Z"})
+    )
+    keep = [
+        root / ".git" / "HEAD",
+        root / ".keepme" / "x",
+        root / ".silo-b-20261101T080000Z.ab" / "c.ply",
+        root / "notes.txt",
+    ]
     for path in keep:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("not the agent's\n")
@@ -312,12 +366,14 @@ def test_retention_removes_only_this_silos_scans_and_logs_each(tmp_path: Path):
 
 
 def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    tmp_path: Path, broker, collector_factory
+):
     """Real tmpfs out of inodes: the raw scan fits, its result.json / height map do not."""
     disk = tmp_path / "disk"
     disk.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=20m,nr_inodes=64", "tmpfs", str(disk)],
-                   check=True)
+    subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=20m,nr_inodes=64", "tmpfs", str(disk)], check=True
+    )
     try:
         scans = disk / "scans"
         scans.mkdir()
@@ -331,8 +387,9 @@ def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
             fillers.pop()
         for path in fillers[:4]:  # room for the raw scan: staging dir, 2 clouds, scan.json
             path.unlink()
-        config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                              audit={"directory": str(scans)})
+        config = write_config(
+            tmp_path / "agent.toml", broker.port, tmp_path, audit={"directory": str(scans)}
+        )
         col = collector_factory(broker, [f"{BASE}/#"])
         agent = Daemon(config, tmp_path, "--scans", "1")
         try:
@@ -357,7 +414,8 @@ def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
 
 def test_systemd_unit_stops_restarting_on_bad_files_and_bounds_memory():
     unit = (Path(__file__).parent.parent / "systemd" / "silo-agent.service").read_text()
-    settings = dict(line.split("=", 1) for line in unit.splitlines()
-                    if "=" in line and not line.startswith("#"))  # fmt: skip
+    settings = dict(
+        line.split("=", 1) for line in unit.splitlines() if "=" in line and not line.startswith("#")
+    )
     assert set(settings["RestartPreventExitStatus"].split()) == {"65", "78"}
     assert settings["MemoryMax"].rstrip("G").isdigit()

@@ -40,8 +40,9 @@ def command(col, request_id: str, response_topic: str, correlation: bytes) -> No
 
 
 def reply_to(col, correlation: bytes, topic: str = FALLBACK) -> dict:
-    col.wait_for(lambda ms: any(
-        m.topic == topic and m.properties.CorrelationData == correlation for m in ms))
+    col.wait_for(
+        lambda ms: any(m.topic == topic and m.properties.CorrelationData == correlation for m in ms)
+    )
     (reply,) = [m for m in col.on(topic) if m.properties.CorrelationData == correlation]
     return validate_json(reply.payload)
 
@@ -49,9 +50,12 @@ def reply_to(col, correlation: bytes, topic: str = FALLBACK) -> dict:
 def published_after_it(tel: Telemetry, col) -> None:
     """A result queued now still reaches the broker: nothing blocks the outbox."""
     tel.publish_result(summary(f"{SILO}-after"), realistic_heightmap(60, 80))
-    col.wait_for(lambda ms: any(
-        m.topic == f"{BASE}/scan" and json.loads(m.payload)["scan_id"] == f"{SILO}-after"
-        for m in ms))
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/scan" and json.loads(m.payload)["scan_id"] == f"{SILO}-after"
+            for m in ms
+        )
+    )
 
 
 @pytest.mark.parametrize("response_topic", ["x/replies/#", "x/+/r", "$SYS/replies"])
@@ -111,9 +115,12 @@ def test_a_row_paho_refuses_is_dead_lettered_and_the_rest_flows(agent):
     ((row, reason),) = tel.outbox.dead_letters()
     assert row.topic == "x/replies/#" and row.payload == b'{"poison": true}'
     assert "wildcard" in reason
-    col.wait_for(lambda ms: any(
-        m.topic == f"{BASE}/status" and json.loads(m.payload)["outbox"]["dead_lettered"] == 1
-        for m in ms))
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/status" and json.loads(m.payload)["outbox"]["dead_lettered"] == 1
+            for m in ms
+        )
+    )
 
 
 def test_dead_letters_survive_a_restart_and_are_bounded(tmp_path, monkeypatch):
@@ -131,8 +138,9 @@ def test_dead_letters_survive_a_restart_and_are_bounded(tmp_path, monkeypatch):
 
 
 @pytest.mark.broker  # starts its own mosquitto
-def test_oversize_message_is_dead_lettered_not_retried(tmp_path, telemetry_factory,
-                                                       collector_factory):
+def test_oversize_message_is_dead_lettered_not_retried(
+    tmp_path, telemetry_factory, collector_factory
+):
     broker = Broker(tmp_path / "small-broker", extra=("max_packet_size 20000",)).start()
     try:
         tel = telemetry_factory(broker)
@@ -141,9 +149,13 @@ def test_oversize_message_is_dead_lettered_not_retried(tmp_path, telemetry_facto
         # a 300 x 400 map is ~100 kB, far over 20000 bytes; scan and volume are small
         tel.publish_result(summary(), realistic_heightmap())
         col.wait_topic(f"{BASE}/volume")
-        col.wait_for(lambda ms: any(
-            m.topic == f"{BASE}/status" and json.loads(m.payload)["outbox"]["dead_lettered"] == 1
-            for m in ms))
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/status"
+                and json.loads(m.payload)["outbox"]["dead_lettered"] == 1
+                for m in ms
+            )
+        )
         published_after_it(tel, col)  # with a small map (~5 kB), which goes through
         (small,) = col.wait_topic(f"{BASE}/heightmap")
         assert f"{SILO}-after".encode() in small.payload
@@ -185,14 +197,18 @@ def test_message_the_broker_drops_the_connection_over_is_dead_lettered(
 
 def test_retained_command_does_not_scan_at_start(broker, telemetry_factory, collector_factory):
     col = collector_factory(broker, [f"{BASE}/#"])
-    col.client.publish(f"{BASE}/cmd/scan", b'{"request_id": "stale"}', qos=1,
-                       retain=True).wait_for_publish(5)
+    col.client.publish(
+        f"{BASE}/cmd/scan", b'{"request_id": "stale"}', qos=1, retain=True
+    ).wait_for_publish(5)
     tel = telemetry_factory(broker, start=False)
     accepted: list[str] = []
     tel.on_scan_request(lambda cmd: accepted.append(cmd.request_id))
     tel.start()
-    col.wait_for(lambda ms: any(
-        m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online" for m in ms))
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online" for m in ms
+        )
+    )
     # a live command after it is taken: the subscription works, the retained one was skipped
     col.publish(f"{BASE}/cmd/scan", b'{"request_id": "live"}')
     col.wait_topic(FALLBACK)
@@ -213,10 +229,16 @@ def cut_the_connection(tel: Telemetry) -> None:
 def assert_offline_sorts_right(col) -> int:
     """Each `offline` (the Last Will) has a seq above every message delivered before it, and
     the `online` of the next session one above it; returns how many offlines there were."""
-    delivered = [json.loads(m.payload) for m in col.messages
-                 if m.topic.startswith(BASE) and m.payload.startswith(b"{")]
-    offlines = [i for i, d in enumerate(delivered)
-                if d["schema"] == "silo-status/1" and d["state"] == "offline"]
+    delivered = [
+        json.loads(m.payload)
+        for m in col.messages
+        if m.topic.startswith(BASE) and m.payload.startswith(b"{")
+    ]
+    offlines = [
+        i
+        for i, d in enumerate(delivered)
+        if d["schema"] == "silo-status/1" and d["state"] == "offline"
+    ]
     for i in offlines:
         assert delivered[i]["seq"] > max(d["seq"] for d in delivered[:i])
         next_online = next(d for d in delivered[i:] if d.get("state") == "online")
@@ -244,8 +266,12 @@ def test_last_will_seq_is_re_armed_before_the_session_reaches_it(
     for i in range(30):  # 60 seq values from a will at seq 40: the session must re-arm
         tel.publish_result(summary(f"{SILO}-{i:02d}"))
     every_scan = {f"{SILO}-{i:02d}" for i in range(30)}
-    col.wait_for(lambda ms: every_scan == {
-        json.loads(m.payload)["scan_id"] for m in ms if m.topic == f"{BASE}/scan"})
+    col.wait_for(
+        lambda ms: (
+            every_scan
+            == {json.loads(m.payload)["scan_id"] for m in ms if m.topic == f"{BASE}/scan"}
+        )
+    )
     cut_the_connection(tel)
     col.wait_for(lambda ms: [s["state"] for s in statuses(col)][-2:] == ["offline", "online"])
     # without the re-arm the last offline would carry the first will's seq (40) and sort

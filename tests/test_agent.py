@@ -39,10 +39,18 @@ def request(col, payload: bytes) -> bytes:
 
 
 def replies(col, correlation: bytes, count: int = 1, timeout: float = 30) -> list[dict]:
-    col.wait_for(lambda ms: sum(m.topic == REPLIES and m.properties.CorrelationData == correlation
-                                for m in ms) >= count, timeout)  # fmt: skip
-    return [validate_json(m.payload) for m in col.on(REPLIES)
-            if m.properties.CorrelationData == correlation]  # fmt: skip
+    col.wait_for(
+        lambda ms: (
+            sum(m.topic == REPLIES and m.properties.CorrelationData == correlation for m in ms)
+            >= count
+        ),
+        timeout,
+    )
+    return [
+        validate_json(m.payload)
+        for m in col.on(REPLIES)
+        if m.properties.CorrelationData == correlation
+    ]
 
 
 def stamp(entry: dict) -> float:
@@ -64,15 +72,23 @@ def idle(agent: Daemon, timeout: float = 30) -> None:
 
 @pytest.mark.slow
 def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    tmp_path: Path, broker, collector_factory
+):
     notify = NotifySocket(tmp_path / "notify.sock")
     metrics_port = free_port()
     config = tmp_path / "agent.toml"
-    write_config(config, broker.port, tmp_path, schedule={"interval_s": 2, "scan_at_start": True},
-                 simulation={"capture_s": 0.2}, metrics={"enabled": True, "port": metrics_port})
+    write_config(
+        config,
+        broker.port,
+        tmp_path,
+        schedule={"interval_s": 2, "scan_at_start": True},
+        simulation={"capture_s": 0.2},
+        metrics={"enabled": True, "port": metrics_port},
+    )
     col = collector_factory(broker, [f"{BASE}/#", REPLIES])
-    agent = Daemon(config, tmp_path,
-                   env={"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "2000000"})
+    agent = Daemon(
+        config, tmp_path, env={"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "2000000"}
+    )
     try:
         # --- scheduled: one at start, then on the 2 s ticks (a tick during the first, slow
         # scan, which builds the simulated world, starts the next right after it)
@@ -86,9 +102,14 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
         assert status["state"] == "online"
 
         # --- reload a valid config: no schedule any more, slower captures
-        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False},
-                     simulation={"capture_s": 1.0},
-                     metrics={"enabled": True, "port": metrics_port})
+        write_config(
+            config,
+            broker.port,
+            tmp_path,
+            schedule={"scan_at_start": False},
+            simulation={"capture_s": 1.0},
+            metrics={"enabled": True, "port": metrics_port},
+        )
         agent.signal(signal.SIGHUP)
         agent.wait_log("config reloaded")
         time.sleep(0.3)  # a scheduled scan that was waiting starts right after the reload
@@ -106,9 +127,12 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
         assert done["status"] == "done" and done["request_id"] == "r-1"
         assert refused["status"] == "error" and refused["accepted"] is False
         assert "busy" in refused["error"] and refused["scan_id"] == done["scan_id"]
-        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
-                                    and json.loads(m.payload)["scan_id"] == done["scan_id"]
-                                    for m in ms))  # fmt: skip
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/scan" and json.loads(m.payload)["scan_id"] == done["scan_id"]
+                for m in ms
+            )
+        )
         time.sleep(2.5)  # the old 2 s schedule is gone: no scan starts by itself
         assert len(agent.log()) and len(agent.wait_log("scan started")) == before + 1
 
@@ -118,8 +142,11 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
 
         # --- metrics
         idle(agent)
-        text = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=5) \
-            .read().decode()  # fmt: skip
+        text = (
+            urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=5)
+            .read()
+            .decode()
+        )
         scans = len(agent.wait_log("scan finished"))
         assert scans >= 5
         assert f'silo_agent_scans_total{{outcome="ok"}} {scans}.0' in text
@@ -142,8 +169,11 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
     finally:
         agent.kill()
         notify.close()
-    col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
-                                and json.loads(m.payload)["state"] == "stopped" for m in ms))
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "stopped" for m in ms
+        )
+    )
     fields = notify.fields()
     assert fields[0] == "READY=1"
     assert fields.index("STOPPING=1") > fields.index("READY=1")
@@ -160,21 +190,28 @@ def test_schedule_requests_busy_reload_metrics_notify_and_sigterm(
 
 @pytest.mark.slow
 def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
-    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                          schedule={"scan_at_start": False})
+    tmp_path: Path, broker, collector_factory
+):
+    config = write_config(
+        tmp_path / "agent.toml", broker.port, tmp_path, schedule={"scan_at_start": False}
+    )
     col = collector_factory(broker, [f"{BASE}/#"])
     agent = Daemon(config, tmp_path)
     try:
         agent.wait_log("agent started")
-        col.wait_for(lambda ms: any(m.topic == f"{BASE}/status"
-                                    and json.loads(m.payload)["state"] == "online" for m in ms))
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online"
+                for m in ms
+            )
+        )
         time.sleep(0.5)
         assert not any(e.get("event") == "scan started" for e in agent.log())  # scan_at_start off
         agent.signal(signal.SIGKILL)
         agent.wait()
-        col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
-                     == "offline")  # the Last Will
+        col.wait_for(
+            lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"] == "offline"
+        )  # the Last Will
 
         broker.kill()  # the broker is down while the agent scans
         write_config(config, broker.port, tmp_path, schedule={"scan_at_start": True})
@@ -183,33 +220,49 @@ def test_sigkill_leaves_the_will_and_the_outbox_delivers_after_restart(
         agent.signal(signal.SIGKILL)
         agent.wait()
         pending = finished["scan_id"]
-        assert not any(json.loads(m.payload).get("scan_id") == pending
-                       for m in col.on(f"{BASE}/scan"))  # fmt: skip
+        assert not any(
+            json.loads(m.payload).get("scan_id") == pending for m in col.on(f"{BASE}/scan")
+        )
 
         broker.start()
         write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False})
         agent = Daemon(config, tmp_path)
-        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
-                                    and json.loads(m.payload)["scan_id"] == pending for m in ms),
-                     timeout=30)  # fmt: skip
-        col.wait_for(lambda ms: any(m.topic == f"{BASE}/volume"
-                                    and json.loads(m.payload)["scan_id"] == pending for m in ms))
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/scan" and json.loads(m.payload)["scan_id"] == pending
+                for m in ms
+            ),
+            timeout=30,
+        )
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/volume" and json.loads(m.payload)["scan_id"] == pending
+                for m in ms
+            )
+        )
         agent.signal(signal.SIGINT)  # Ctrl-C stops as cleanly as SIGTERM
         assert agent.wait(20) == 0
-        col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
-                     == "stopped")  # fmt: skip
+        col.wait_for(
+            lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"] == "stopped"
+        )
     finally:
         agent.kill()
 
 
 @pytest.mark.slow
 def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    tmp_path: Path, broker, collector_factory
+):
     sequence = ["flat", "flat", "crater", "crater", "flat", "flat"]
     max_bytes = 6_000_000  # about three scans of two 424x240 clouds
-    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                          schedule={"interval_s": 0.2, "scan_at_start": True},
-                          simulation={"sequence": sequence}, audit={"max_bytes": max_bytes})
+    config = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        schedule={"interval_s": 0.2, "scan_at_start": True},
+        simulation={"sequence": sequence},
+        audit={"max_bytes": max_bytes},
+    )
     col = collector_factory(broker, [f"{BASE}/#"])
     agent = Daemon(config, tmp_path, "--scans", str(len(sequence)))
     try:
@@ -238,50 +291,87 @@ def test_collapse_raised_and_cleared_cache_bounded_and_replay_bit_for_bit(
     scans = tmp_path / "scans"
     kept = sorted(p.name for p in scans.iterdir() if (p / "scan.json").is_file())
     assert len(kept) < len(sequence)
-    assert sum(f.stat().st_size for f in scans.rglob("*") if f.is_file()
-               and f.parent != scans) <= max_bytes  # fmt: skip
+    assert (
+        sum(f.stat().st_size for f in scans.rglob("*") if f.is_file() and f.parent != scans)
+        <= max_bytes
+    )
     state = json.loads((scans / "alarm-state.json").read_text())
     assert state["baseline_scan_id"] == scan_ids[-1] and state["baseline_scan_id"] in kept
 
     # replay: the same result, bit for bit; a tampered result is caught
     last = scans / scan_ids[-1]
-    run = subprocess.run([sys.executable, "-m", "silo_agent", "replay", scan_ids[-1], "--config",
-                          str(config)], capture_output=True, text=True, timeout=60)  # fmt: skip
+    run = subprocess.run(
+        [sys.executable, "-m", "silo_agent", "replay", scan_ids[-1], "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 0, run.stdout + run.stderr
     assert "identical" in run.stdout
     published = json.loads((last / "result.json").read_text())
-    assert published["volume_m3"] == json.loads(col.on(f"{BASE}/volume")[-1].payload)[
-        "volume_m3"]  # what was kept is what was published
+    assert (
+        published["volume_m3"] == json.loads(col.on(f"{BASE}/volume")[-1].payload)["volume_m3"]
+    )  # what was kept is what was published
     published["volume_m3"] = math.nextafter(published["volume_m3"], math.inf)  # one ulp off
     (last / "result.json").write_text(json.dumps(published))
-    run = subprocess.run([sys.executable, "-m", "silo_agent", "replay", str(last)],
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        [sys.executable, "-m", "silo_agent", "replay", str(last)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 1
     assert "volume_m3: published" in run.stdout
 
-    listing = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "list", "--config",
-                              str(config)], capture_output=True, text=True, timeout=60)
+    listing = subprocess.run(
+        [sys.executable, "-m", "silo_agent", "scans", "list", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert listing.returncode == 0
     assert [line.split()[0] for line in listing.stdout.splitlines()[:-1]] == kept
-    shown = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "show", kept[0],
-                            "--config", str(config)], capture_output=True, text=True, timeout=60)
+    shown = subprocess.run(
+        [sys.executable, "-m", "silo_agent", "scans", "show", kept[0], "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     report = json.loads(shown.stdout)
     assert report["manifest"]["scan_id"] == kept[0] and "config" not in report["manifest"]
     assert report["manifest"]["config_sha256"] and report["result"]["scan_id"] == kept[0]
     out = tmp_path / "export.tar.gz"
-    exported = subprocess.run([sys.executable, "-m", "silo_agent", "scans", "export", kept[0],
-                               "--config", str(config), "--out", str(out)],
-                              capture_output=True, text=True, timeout=60)  # fmt: skip
+    exported = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "silo_agent",
+            "scans",
+            "export",
+            kept[0],
+            "--config",
+            str(config),
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert exported.returncode == 0 and out.stat().st_size > 100_000
 
 
 @pytest.mark.slow
 def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
-    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                          schedule={"scan_at_start": False, "scan_timeout_s": 1.5,
-                                    "stop_timeout_s": 0.5},
-                          simulation={"capture_s": 2.0})  # two cameras: 4 s, past the deadline
+    tmp_path: Path, broker, collector_factory
+):
+    config = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        schedule={"scan_at_start": False, "scan_timeout_s": 1.5, "stop_timeout_s": 0.5},
+        simulation={"capture_s": 2.0},
+    )  # two cameras: 4 s, past the deadline
     col = collector_factory(broker, [f"{BASE}/#", REPLIES])
     agent = Daemon(config, tmp_path)
     try:
@@ -290,8 +380,11 @@ def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
         accepted, failed = replies(col, first, 2)
         assert accepted["status"] == "accepted"
         assert failed["status"] == "error" and "deadline" in failed["error"]
-        report = next(validate_json(m.payload) for m in col.on(f"{BASE}/scan")
-                      if json.loads(m.payload)["scan_id"] == failed["scan_id"])  # fmt: skip
+        report = next(
+            validate_json(m.payload)
+            for m in col.on(f"{BASE}/scan")
+            if json.loads(m.payload)["scan_id"] == failed["scan_id"]
+        )
         assert report["valid"] is False and "deadline of 1.5 s exceeded" in report["invalid_reason"]
         # the abandoned scan still holds the cameras: busy until its capture returns
         (busy,) = replies(col, request(col, b'{"request_id": "next"}'))
@@ -311,15 +404,17 @@ def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
         assert time.monotonic() - t0 < 6
     finally:
         agent.kill()
-    assert agent.wait_log("scan failed", 2)[-1]["reason"] == \
-        "agent stopped during the scan; scan abandoned"  # fmt: skip
-    col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"]
-                 == "stopped")  # fmt: skip
+    assert (
+        agent.wait_log("scan failed", 2)[-1]["reason"]
+        == "agent stopped during the scan; scan abandoned"
+    )
+    col.wait_for(lambda ms: json.loads(col.on(f"{BASE}/status")[-1].payload)["state"] == "stopped")
 
 
 @pytest.mark.slow
 def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    tmp_path: Path, broker, collector_factory
+):
     col = collector_factory(broker, [f"{BASE}/#"])
     cameras = (("sim-A2", "A2"), ("sim-A6", "A6"), ("broken", None))
     config = write_config(tmp_path / "agent.toml", broker.port, tmp_path, cameras=cameras)
@@ -337,20 +432,33 @@ def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
     col.wait_topic(f"{BASE}/alarm")
     (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
     assert (alarm["type"], alarm["state"]) == ("camera", "raised") and "broken" in alarm["message"]
-    col.wait_for(lambda ms: any(m.topic == f"{BASE}/status" and any(
-        c["serial"] == "broken" and c["state"] == "failed"
-        for c in json.loads(m.payload)["cameras"]) for m in ms))  # fmt: skip
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/status"
+            and any(
+                c["serial"] == "broken" and c["state"] == "failed"
+                for c in json.loads(m.payload)["cameras"]
+            )
+            for m in ms
+        )
+    )
 
     # no camera at all: the scan fails, is reported on P/scan, the agent goes on and stops cleanly
-    write_config(config, broker.port, tmp_path, cameras=(("broken", None),),
-                 schedule={"interval_s": 0.2, "scan_at_start": True})
+    write_config(
+        config,
+        broker.port,
+        tmp_path,
+        cameras=(("broken", None),),
+        schedule={"interval_s": 0.2, "scan_at_start": True},
+    )
     agent = Daemon(config, tmp_path, "--scans", "2")
     try:
         assert agent.wait(60) == 0
     finally:
         agent.kill()
     assert [e["reason"] for e in agent.log() if e.get("event") == "scan failed"] == [
-        "capture: no camera delivered a cloud"] * 2
+        "capture: no camera delivered a cloud"
+    ] * 2
     col.wait_topic(f"{BASE}/scan", 3)
     report = validate_json(col.on(f"{BASE}/scan")[-1].payload)
     assert report["valid"] is False and report["volume_m3"] is None
@@ -361,16 +469,19 @@ def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
 
 
 @pytest.mark.slow
-def test_full_disk_publishes_uncached_with_a_cache_alarm(
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
+def test_full_disk_publishes_uncached_with_a_cache_alarm(tmp_path: Path, broker, collector_factory):
     disk = tmp_path / "disk"
     disk.mkdir()
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2600k", "tmpfs", str(disk)], check=True)
     try:
-        config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                              schedule={"interval_s": 1.0, "scan_at_start": True},
-                              simulation={"capture_s": 0.6},  # a scan outlasts the interval
-                              audit={"directory": str(disk / "scans")})  # one scan fits
+        config = write_config(
+            tmp_path / "agent.toml",
+            broker.port,
+            tmp_path,
+            schedule={"interval_s": 1.0, "scan_at_start": True},
+            simulation={"capture_s": 0.6},  # a scan outlasts the interval
+            audit={"directory": str(disk / "scans")},
+        )  # one scan fits
         col = collector_factory(broker, [f"{BASE}/#"])
         agent = Daemon(config, tmp_path, "--scans", "2")
         try:
@@ -385,10 +496,14 @@ def test_full_disk_publishes_uncached_with_a_cache_alarm(
         assert 0 <= start_second - end_first < 0.3
         cached = sorted(p.name for p in (disk / "scans").iterdir() if p.is_dir())
         assert cached == [first]  # the baseline could not be evicted; the second went uncached
-        assert any(e.get("event") == "disk still full, scan published uncached"
-                   for e in agent.log())  # fmt: skip
-        col.wait_for(lambda ms: any(m.topic == f"{BASE}/scan"
-                                    and json.loads(m.payload)["scan_id"] == second for m in ms))
+        assert any(
+            e.get("event") == "disk still full, scan published uncached" for e in agent.log()
+        )
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/scan" and json.loads(m.payload)["scan_id"] == second for m in ms
+            )
+        )
         col.wait_for(lambda ms: any(m.topic == f"{BASE}/alarm" for m in ms))
         (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
         assert (alarm["type"], alarm["state"], alarm["scan_id"]) == ("cache", "raised", second)
@@ -396,17 +511,27 @@ def test_full_disk_publishes_uncached_with_a_cache_alarm(
         subprocess.run(["umount", str(disk)], check=True)
 
 
-@pytest.mark.parametrize(("section", "values", "expected"), [
-    ("alarms", {"collapse_depth_m": -1.0},
-     "alarms.collapse_depth_m: Input should be greater than 0"),
-    ("schedule", {"cron": "0 25 * * *"}, "schedule.cron: not a crontab expression"),
-    ("metrics", {"port": 0}, "metrics.port: Input should be greater than or equal to 1"),
-    ("simulation", {"sequence": "flat"}, "simulation.sequence: Input should be a valid array"),
-])
+@pytest.mark.parametrize(
+    ("section", "values", "expected"),
+    [
+        (
+            "alarms",
+            {"collapse_depth_m": -1.0},
+            "alarms.collapse_depth_m: Input should be greater than 0",
+        ),
+        ("schedule", {"cron": "0 25 * * *"}, "schedule.cron: not a crontab expression"),
+        ("metrics", {"port": 0}, "metrics.port: Input should be greater than or equal to 1"),
+        ("simulation", {"sequence": "flat"}, "simulation.sequence: Input should be a valid array"),
+    ],
+)
 def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path, section, values, expected):
     config = write_config(tmp_path / "agent.toml", 1, tmp_path, **{section: values})
-    run = subprocess.run([sys.executable, "-m", "silo_agent", "run", "--config", str(config)],
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        [sys.executable, "-m", "silo_agent", "run", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 78
     assert f"{config}: {expected}" in run.stderr
     assert not (tmp_path / "scans").exists()  # nothing started
@@ -414,9 +539,13 @@ def test_bad_config_exits_78_naming_file_and_key(tmp_path: Path, section, values
 
 def test_bad_time_zone_exits_78(tmp_path: Path):
     config = write_config(tmp_path / "agent.toml", 1, tmp_path)
-    config.write_text(config.read_text().replace('[silo]\n', '[silo]\ntimezone = "Mars/Olympus"\n'))
-    run = subprocess.run([sys.executable, "-m", "silo_agent", "check-config", str(config)],
-                         capture_output=True, text=True, timeout=60)
+    config.write_text(config.read_text().replace("[silo]\n", '[silo]\ntimezone = "Mars/Olympus"\n'))
+    run = subprocess.run(
+        [sys.executable, "-m", "silo_agent", "check-config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode == 78
     assert "silo.timezone: unknown time zone 'Mars/Olympus'" in run.stderr
 
@@ -425,11 +554,15 @@ def test_cron_runs_in_the_site_time_zone_with_grace_and_coalescing(tmp_path: Pat
     from silo_agent.agent import Agent
     from silo_agent.config import load_config
 
-    config_path = write_config(tmp_path / "agent.toml", 1, tmp_path,
-                               schedule={"cron": "0 6 * * *", "interval_s": 3600,
-                                         "misfire_grace_s": 120})
-    config_path.write_text(config_path.read_text().replace(
-        "[silo]\n", '[silo]\ntimezone = "Australia/Adelaide"\n'))
+    config_path = write_config(
+        tmp_path / "agent.toml",
+        1,
+        tmp_path,
+        schedule={"cron": "0 6 * * *", "interval_s": 3600, "misfire_grace_s": 120},
+    )
+    config_path.write_text(
+        config_path.read_text().replace("[silo]\n", '[silo]\ntimezone = "Australia/Adelaide"\n')
+    )
     agent = Agent(config_path, load_config(config_path))
     agent._start_scheduler()
     try:
@@ -449,8 +582,12 @@ def test_every_daemon_key_is_documented_in_the_example():
     from silo_agent.config import AlarmsConfig, AuditConfig, MetricsConfig, ScheduleConfig
 
     example = (Path(__file__).parents[1] / "config" / "silo-agent.example.toml").read_text()
-    for section, model in (("schedule", ScheduleConfig), ("audit", AuditConfig),
-                           ("alarms", AlarmsConfig), ("metrics", MetricsConfig)):
+    for section, model in (
+        ("schedule", ScheduleConfig),
+        ("audit", AuditConfig),
+        ("alarms", AlarmsConfig),
+        ("metrics", MetricsConfig),
+    ):
         block = example.split(f"[{section}]", 1)[1].split("\n[", 1)[0]
         for key in model.model_fields:
             assert f"\n{key} = " in block or f"\n# {key} = " in block, f"{section}.{key}"

@@ -43,9 +43,13 @@ ALARM_TOPICS = {f"{BASE}/alarm/{t}" for t in ALARM_TYPES}
 
 def wait_snapshot(watcher, since: int, check=lambda states: True) -> None:
     """Until the agent has published a state for every alarm type after message `since`."""
+
     def done(ms) -> bool:
-        latest = {m.topic: json.loads(m.payload) for m in ms[since:]
-                  if m.topic in ALARM_TOPICS and m.payload}  # fmt: skip
+        latest = {
+            m.topic: json.loads(m.payload)
+            for m in ms[since:]
+            if m.topic in ALARM_TOPICS and m.payload
+        }
         return set(latest) == ALARM_TOPICS and check(latest)
 
     watcher.wait_for(done, timeout=30)
@@ -56,18 +60,21 @@ def retained_alarm_states(broker, collector_factory, client_id: str) -> dict[str
     only the broker's retained messages count."""
     fresh = collector_factory(broker, [f"{BASE}/alarm/+"], client_id=client_id)
     fresh.wait_for(lambda ms: {m.topic for m in ms if m.retain} >= ALARM_TOPICS)
-    return {m.topic.rsplit("/", 1)[1]: validate_json(m.payload)
-            for m in fresh.messages if m.retain}  # fmt: skip
+    return {m.topic.rsplit("/", 1)[1]: validate_json(m.payload) for m in fresh.messages if m.retain}
 
 
 @pytest.mark.slow
 def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_a_switched_off_detector_clears(  # noqa: E501
-        tmp_path: Path, broker, collector_factory):  # fmt: skip
+    tmp_path: Path, broker, collector_factory
+):
     port = free_port()
-    options = dict(mqtt={"sparkplug.enabled": True, "homeassistant.enabled": True},
-                   metrics={"enabled": True, "port": port})  # fmt: skip
-    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                          alarms={"low_volume_m3": LOW}, **options)
+    options = dict(
+        mqtt={"sparkplug.enabled": True, "homeassistant.enabled": True},
+        metrics={"enabled": True, "port": port},
+    )
+    config = write_config(
+        tmp_path / "agent.toml", broker.port, tmp_path, alarms={"low_volume_m3": LOW}, **options
+    )
     spb = collector_factory(broker, ["spBv1.0/#"], client_id="host")
     watcher = collector_factory(broker, [f"{BASE}/alarm/+"], client_id="watcher")
     agent = Daemon(config, tmp_path)
@@ -79,8 +86,11 @@ def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_
 
         # --- the first scan raises level_low; the metrics say so, with mass and capture time
         (finished,) = agent.wait_log("scan finished", timeout=60)
-        watcher.wait_for(lambda ms: any(m.topic == f"{BASE}/alarm/level_low"
-                                        and b'"raised"' in m.payload for m in ms))  # fmt: skip
+        watcher.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/alarm/level_low" and b'"raised"' in m.payload for m in ms
+            )
+        )
         raised = retained_alarm_states(broker, collector_factory, "ha-2")["level_low"]
         assert raised["state"] == "raised" and raised["scan_id"] == finished["scan_id"]
         families = metric_families(port)
@@ -90,8 +100,7 @@ def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_
         assert abs(mass - volume * DENSITY_T_M3 * 1000) < 1e-6 * mass
         captured = families["silo_agent_last_scan_timestamp_seconds"].samples[0].value
         assert abs(captured - time.time()) < 120
-        assert families["silo_agent_last_valid_scan_timestamp_seconds"].samples[0].value \
-            == captured  # fmt: skip
+        assert families["silo_agent_last_valid_scan_timestamp_seconds"].samples[0].value == captured
 
         # --- SIGKILL, restart without a scan: the persisted alarm is raised everywhere. The
         # broker forgets the retained states (as one without persistence would after its own
@@ -101,8 +110,14 @@ def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_
         for topic in ALARM_TOPICS:
             watcher.client.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
         since = len(watcher.messages)
-        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False},
-                     alarms={"low_volume_m3": LOW}, **options)
+        write_config(
+            config,
+            broker.port,
+            tmp_path,
+            schedule={"scan_at_start": False},
+            alarms={"low_volume_m3": LOW},
+            **options,
+        )
         births_before = len(spb.on(NODE.format("NBIRTH")))
         agent = Daemon(config, tmp_path)
         agent.wait_log("agent started")
@@ -114,9 +129,17 @@ def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_
         assert {t for t, s in after.items() if s["state"] == "raised"} == {"level_low"}
         assert after["level_low"]["scan_id"] == finished["scan_id"]
 
-        ncmd = ps.NCmd(timestamp=int(time.time() * 1000), metrics=(
-            ps.Metric(timestamp=None, name="Node Control/Rebirth", datatype=ps.DataType.BOOLEAN,
-                      value=True),))  # fmt: skip
+        ncmd = ps.NCmd(
+            timestamp=int(time.time() * 1000),
+            metrics=(
+                ps.Metric(
+                    timestamp=None,
+                    name="Node Control/Rebirth",
+                    datatype=ps.DataType.BOOLEAN,
+                    value=True,
+                ),
+            ),
+        )
         spb.publish(NODE.format("NCMD"), ncmd.encode(include_dtypes=True))
         births = spb.wait_topic(NODE.format("NBIRTH"), births_before + 2)
         assert alarm_metrics(births, births_before + 1)["Alarms/level_low"] is True
@@ -132,30 +155,44 @@ def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_
             for t in ALARM_TYPES
         }
         assert families["silo_agent_outbox_dropped_messages"].type == "counter"
-        for name in ("silo_agent_outbox_pending_messages", "silo_agent_last_volume_cubic_meters",
-                     "silo_agent_last_mass_kilograms", "silo_agent_last_scan_timestamp_seconds"):
+        for name in (
+            "silo_agent_outbox_pending_messages",
+            "silo_agent_last_volume_cubic_meters",
+            "silo_agent_last_mass_kilograms",
+            "silo_agent_last_scan_timestamp_seconds",
+        ):
             assert families[name].type == "gauge", name
         counters = [f for f in families.values() if f.type == "counter"]
         assert all(s.name.endswith(("_total", "_created")) for f in counters for s in f.samples)
 
         # --- low_volume_m3 removed, SIGHUP: level_low clears with an event, everywhere
         events = collector_factory(broker, [f"{BASE}/alarm"], client_id="events")
-        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False},
-                     **options)
+        write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False}, **options)
         agent.signal(signal.SIGHUP)
         agent.wait_log("config reloaded")
         cleared = validate_json(events.wait_topic(f"{BASE}/alarm")[0].payload)
         assert (cleared["type"], cleared["state"]) == ("level_low", "cleared")
         assert "low_volume_m3" in cleared["message"]
-        assert retained_alarm_states(broker, collector_factory, "ha-4")["level_low"]["state"] \
-            == "cleared"  # fmt: skip
-        spb.wait_for(lambda ms: any(
-            m.topic == NODE.format("NDATA") and any(
-                x.name == "Alarms/level_low" and x.value is False
-                for x in ps.NData.decode(m.payload).metrics)
-            for m in ms))  # fmt: skip
-        assert samples(metric_families(port)["silo_agent_alarm_active"])[
-            ("silo_agent_alarm_active", (("type", "level_low"),))] == 0.0
+        assert (
+            retained_alarm_states(broker, collector_factory, "ha-4")["level_low"]["state"]
+            == "cleared"
+        )
+        spb.wait_for(
+            lambda ms: any(
+                m.topic == NODE.format("NDATA")
+                and any(
+                    x.name == "Alarms/level_low" and x.value is False
+                    for x in ps.NData.decode(m.payload).metrics
+                )
+                for m in ms
+            )
+        )
+        assert (
+            samples(metric_families(port)["silo_agent_alarm_active"])[
+                ("silo_agent_alarm_active", (("type", "level_low"),))
+            ]
+            == 0.0
+        )
         state = json.loads((tmp_path / "scans" / "alarm-state.json").read_text())
         assert "level_low" not in state["active"]
         agent.signal(signal.SIGTERM)

@@ -34,8 +34,13 @@ def grid() -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(centres, centres)
 
 
-def surface(rng: np.random.Generator, *, funnel: bool = False, sigma: float = 0.01,
-            observed_share: float = 0.9) -> HeightMap:
+def surface(
+    rng: np.random.Generator,
+    *,
+    funnel: bool = False,
+    sigma: float = 0.01,
+    observed_share: float = 0.9,
+) -> HeightMap:
     """Flat grain at LEVEL with independent noise plus smooth (correlated) noise, a share of the
     cells unobserved at random; optionally a cone-shaped funnel of FUNNEL_DEPTH."""
     x, y = grid()
@@ -48,12 +53,25 @@ def surface(rng: np.random.Generator, *, funnel: bool = False, sigma: float = 0.
     return HeightMap((-HALF, -HALF), STEP, z.astype(np.float32), observed, np.ones(x.shape))
 
 
-def inputs(hm: HeightMap, scan_id: str, baseline: HeightMap | None = None,
-           baseline_id: str | None = None, **kw) -> Inputs:
-    return Inputs(scan_id=scan_id, heightmap=hm, volume_m3=kw.pop("volume_m3", 43.0),
-                  coverage=kw.pop("coverage", 0.9), valid=True, ceiling_z=kw.pop("ceiling_z", 2.8),
-                  max_z=kw.pop("max_z", 1.3), baseline=baseline, baseline_scan_id=baseline_id,
-                  **kw)  # fmt: skip
+def inputs(
+    hm: HeightMap,
+    scan_id: str,
+    baseline: HeightMap | None = None,
+    baseline_id: str | None = None,
+    **kw,
+) -> Inputs:
+    return Inputs(
+        scan_id=scan_id,
+        heightmap=hm,
+        volume_m3=kw.pop("volume_m3", 43.0),
+        coverage=kw.pop("coverage", 0.9),
+        valid=True,
+        ceiling_z=kw.pop("ceiling_z", 2.8),
+        max_z=kw.pop("max_z", 1.3),
+        baseline=baseline,
+        baseline_scan_id=baseline_id,
+        **kw,
+    )
 
 
 def test_funnel_is_found_where_it_is_with_its_size_depth_and_volume():
@@ -74,8 +92,12 @@ def test_noise_alone_never_raises_a_collapse():
     rng = np.random.default_rng(2)
     for sigma in (0.005, 0.02, 0.05):  # 5 cm: worse than a D455 at 4 m on grain
         for _ in range(10):
-            assert find_collapses(surface(rng, sigma=sigma), surface(rng, sigma=sigma),
-                                  0.10, 0.25, 5.0) == []
+            assert (
+                find_collapses(
+                    surface(rng, sigma=sigma), surface(rng, sigma=sigma), 0.10, 0.25, 5.0
+                )
+                == []
+            )
 
 
 def correlated(rng: np.random.Generator, sigma: float) -> HeightMap:
@@ -84,8 +106,9 @@ def correlated(rng: np.random.Generator, sigma: float) -> HeightMap:
     hm = surface(rng, sigma=0.005)
     blobs = ndimage.gaussian_filter(rng.normal(0, 1, hm.heights.shape), 0.25 / STEP)
     blobs *= sigma / blobs.std()
-    return HeightMap(hm.origin, STEP, (hm.heights + blobs).astype(np.float32), hm.observed,
-                     hm.inside)
+    return HeightMap(
+        hm.origin, STEP, (hm.heights + blobs).astype(np.float32), hm.observed, hm.inside
+    )
 
 
 def test_correlated_noise_raises_nothing_thanks_to_the_noise_floor():
@@ -104,12 +127,18 @@ def test_noise_floor_tracks_the_maps_noise():
     # and it raises the bar: a 0.12 m drop over a large area is not above 5 sigma of 4 cm noise
     x, y = grid()
     dip = np.where(np.hypot(x, y) < 0.8, 0.12, 0.0)
-    lowered = HeightMap(b.origin, b.step, (b.heights - dip).astype(np.float32), b.observed,
-                        b.inside)
+    lowered = HeightMap(
+        b.origin, b.step, (b.heights - dip).astype(np.float32), b.observed, b.inside
+    )
     assert find_collapses(a, lowered, 0.10, 0.25, 5.0) == []
     quiet_a, quiet_b = surface(rng, sigma=0.005), surface(rng, sigma=0.005)
-    quiet_lowered = HeightMap(quiet_b.origin, STEP, (quiet_b.heights - dip).astype(np.float32),
-                              quiet_b.observed, quiet_b.inside)
+    quiet_lowered = HeightMap(
+        quiet_b.origin,
+        STEP,
+        (quiet_b.heights - dip).astype(np.float32),
+        quiet_b.observed,
+        quiet_b.inside,
+    )
     assert len(find_collapses(quiet_a, quiet_lowered, 0.10, 0.25, 5.0)) == 1
 
 
@@ -132,8 +161,14 @@ def test_lifecycle_raises_once_keeps_the_baseline_and_clears_when_filled():
     cfg = AlarmsConfig()
     rng = np.random.default_rng(6)
     state = AlarmState()
-    maps = {"s1": surface(rng), "s2": surface(rng), "s3": surface(rng, funnel=True),
-            "s4": surface(rng, funnel=True), "s5": surface(rng), "s6": surface(rng)}
+    maps = {
+        "s1": surface(rng),
+        "s2": surface(rng),
+        "s3": surface(rng, funnel=True),
+        "s4": surface(rng, funnel=True),
+        "s5": surface(rng),
+        "s6": surface(rng),
+    }
     log = []
     for scan_id, hm in maps.items():
         base_id = state.baseline_scan_id
@@ -152,8 +187,9 @@ def test_lifecycle_raises_once_keeps_the_baseline_and_clears_when_filled():
 def test_collapse_event_payload():
     rng = np.random.default_rng(7)
     before, after = surface(rng), surface(rng, funnel=True)
-    events, state = evaluate(AlarmState(baseline_scan_id="b"),
-                             inputs(after, "n", before, "b"), AlarmsConfig())
+    events, state = evaluate(
+        AlarmState(baseline_scan_id="b"), inputs(after, "n", before, "b"), AlarmsConfig()
+    )
     (event,) = events
     assert event["type"] == "collapse" and event["state"] == "raised"
     assert event["severity"] == "critical" and event["scan_id"] == "n"
@@ -197,11 +233,14 @@ def test_low_volume_change_and_faults():
     assert step("f2", volume_m3=12.5) == []  # +19 %: below the 20 % of a change
     assert step("f3", volume_m3=15.2) == [("change", "raised"), ("level_low", "cleared")]
     assert step("f4", volume_m3=15.5) == [("change", "cleared")]
-    assert step("g", volume_m3=15.5, failed_cameras=(("cam-2", "timeout"),), coverage=0.1,
-                cache_full=True) == [("cache", "raised"), ("camera", "raised"),
-                                     ("coverage", "raised")]  # fmt: skip
-    assert step("h", volume_m3=15.5) == [("cache", "cleared"), ("camera", "cleared"),
-                                         ("coverage", "cleared")]
+    assert step(
+        "g", volume_m3=15.5, failed_cameras=(("cam-2", "timeout"),), coverage=0.1, cache_full=True
+    ) == [("cache", "raised"), ("camera", "raised"), ("coverage", "raised")]
+    assert step("h", volume_m3=15.5) == [
+        ("cache", "cleared"),
+        ("camera", "cleared"),
+        ("coverage", "cleared"),
+    ]
 
 
 def test_another_alarm_type_plugs_in():
@@ -212,17 +251,25 @@ def test_another_alarm_type_plugs_in():
     state = AlarmState()
     kinds = []
     for scan_id in ("x1", "x2", "x3"):
-        events, state = evaluate(state, inputs(surface(rng), scan_id), AlarmsConfig(),
-                                 detectors={"calibration_drift": drift})
+        events, state = evaluate(
+            state,
+            inputs(surface(rng), scan_id),
+            AlarmsConfig(),
+            detectors={"calibration_drift": drift},
+        )
         kinds.append([(e["type"], e["state"], e.get("value")) for e in events])
-    assert kinds == [[], [("calibration_drift", "raised", 1.5)],
-                     [("calibration_drift", "cleared", 1.5)]]
+    assert kinds == [
+        [],
+        [("calibration_drift", "raised", 1.5)],
+        [("calibration_drift", "cleared", 1.5)],
+    ]
 
 
 def test_disabled_alarms_raise_nothing_but_state_carries_on():
     rng = np.random.default_rng(11)
-    events, state = evaluate(AlarmState(), inputs(surface(rng), "a", coverage=0.0),
-                             AlarmsConfig(enabled=False))
+    events, state = evaluate(
+        AlarmState(), inputs(surface(rng), "a", coverage=0.0), AlarmsConfig(enabled=False)
+    )
     assert events == [] and state.baseline_scan_id == "a"
     assert AlarmState.from_json(state.to_json()) == state
 
@@ -231,18 +278,26 @@ def test_a_switched_off_detector_clears_its_alarm_in_the_next_scan():
     """level_low raised, then low_volume_m3 removed (restart with the new config): the next
     scan clears it with a `cleared` event; alarms.enabled = false clears whatever is raised."""
     rng = np.random.default_rng(12)
-    _, state = evaluate(AlarmState(), inputs(surface(rng), "a", volume_m3=5.0, coverage=0.1),
-                        AlarmsConfig(low_volume_m3=10.0))
+    _, state = evaluate(
+        AlarmState(),
+        inputs(surface(rng), "a", volume_m3=5.0, coverage=0.1),
+        AlarmsConfig(low_volume_m3=10.0),
+    )
     assert set(state.active) == {"level_low", "coverage"}
-    events, after = evaluate(state, inputs(surface(rng), "b", volume_m3=5.0, coverage=0.1),
-                             AlarmsConfig())
-    assert [(e["type"], e["state"], e["scan_id"]) for e in events] == [("level_low", "cleared",
-                                                                          "b")]
+    events, after = evaluate(
+        state, inputs(surface(rng), "b", volume_m3=5.0, coverage=0.1), AlarmsConfig()
+    )
+    assert [(e["type"], e["state"], e["scan_id"]) for e in events] == [
+        ("level_low", "cleared", "b")
+    ]
     assert "low_volume_m3" in events[0]["message"] and set(after.active) == {"coverage"}
-    events, off = evaluate(state, inputs(surface(rng), "c", coverage=0.1),
-                           AlarmsConfig(enabled=False))
-    assert sorted((e["type"], e["state"]) for e in events) == [("coverage", "cleared"),
-                                                               ("level_low", "cleared")]
+    events, off = evaluate(
+        state, inputs(surface(rng), "c", coverage=0.1), AlarmsConfig(enabled=False)
+    )
+    assert sorted((e["type"], e["state"]) for e in events) == [
+        ("coverage", "cleared"),
+        ("level_low", "cleared"),
+    ]
     assert off.active == {}
 
 

@@ -22,12 +22,21 @@ T0 = datetime(2026, 11, 1, 6, 0, tzinfo=UTC)
 def make_scan(k: int, points: int = 2000, when: datetime | None = None) -> Scan:
     rng = np.random.default_rng(k)
     when = when or T0 + timedelta(hours=k)
-    clouds = [CameraCloud(serial=f"cam-{c}", points=rng.normal(0, 1, (points, 3)).astype(
-        np.float32), extrinsic=np.eye(4)) for c in range(2)]  # fmt: skip
+    clouds = [
+        CameraCloud(
+            serial=f"cam-{c}",
+            points=rng.normal(0, 1, (points, 3)).astype(np.float32),
+            extrinsic=np.eye(4),
+        )
+        for c in range(2)
+    ]
     return Scan(
-        scan_id=f"silo-t-{when:%Y%m%dT%H%M%SZ}", captured_at=f"{when:%Y-%m-%dT%H:%M:%SZ}",
-        silo_id="silo-t", site=Site(np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float), 0.0),
-        cameras=clouds, reconstruction={"grid_step_m": 0.05},
+        scan_id=f"silo-t-{when:%Y%m%dT%H%M%SZ}",
+        captured_at=f"{when:%Y-%m-%dT%H:%M:%SZ}",
+        silo_id="silo-t",
+        site=Site(np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float), 0.0),
+        cameras=clouds,
+        reconstruction={"grid_step_m": 0.05},
     )
 
 
@@ -52,8 +61,9 @@ def test_retention_keeps_the_cache_within_max_bytes_oldest_first(tmp_path: Path)
     probe.write_scan(make_scan(0), {})
     one = probe.entries()[0].bytes
     max_bytes = int(4.5 * one)
-    cache = AuditCache(AuditConfig(directory=tmp_path / "scans", max_bytes=max_bytes,
-                                   max_age_days=3650), "silo-t")
+    cache = AuditCache(
+        AuditConfig(directory=tmp_path / "scans", max_bytes=max_bytes, max_age_days=3650), "silo-t"
+    )
     ids = []
     for k in range(30):
         ids.append(cache.write_scan(make_scan(k), {}).name)
@@ -67,8 +77,7 @@ def test_retention_keeps_the_cache_within_max_bytes_oldest_first(tmp_path: Path)
 
 def test_retention_by_age(tmp_path: Path):
     cache = AuditCache(AuditConfig(directory=tmp_path / "scans", max_age_days=2), "silo-t")
-    ids = [cache.write_scan(make_scan(k, when=T0 + timedelta(days=k)), {}).name
-           for k in range(6)]  # fmt: skip
+    ids = [cache.write_scan(make_scan(k, when=T0 + timedelta(days=k)), {}).name for k in range(6)]
     removed = cache.enforce(protected={ids[0]}, now=T0 + timedelta(days=5, hours=1))
     assert removed == ids[1:4]  # older than 2 days, except the protected baseline
     assert [e.scan_id for e in cache.entries()] == [ids[0], *ids[4:]]
@@ -97,8 +106,12 @@ def test_export_and_lookup(tmp_path: Path):
     out = cache.export(scan_id, tmp_path / "x.tar.gz")
     with tarfile.open(out) as tar:
         names = sorted(tar.getnames())
-    assert names == [scan_id, f"{scan_id}/cam-0.ply", f"{scan_id}/cam-1.ply",
-                     f"{scan_id}/scan.json"]
+    assert names == [
+        scan_id,
+        f"{scan_id}/cam-0.ply",
+        f"{scan_id}/cam-1.ply",
+        f"{scan_id}/scan.json",
+    ]
     for bad in ("nope", "../scans", f".{scan_id}"):
         with pytest.raises(ScanError):
             cache.find(bad)

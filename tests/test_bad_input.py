@@ -125,14 +125,23 @@ def test_header_lies_about_count(scan_dir: Path) -> None:
     ("body", "fragment"),
     [
         (b"garbage", "not a PLY"),
-        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
-         b"property float z\nend_header\n0 0 0\n", "binary_little_endian"),
-        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty double x\n"
-         b"property double y\nproperty double z\nend_header\n" + bytes(24), "float x"),
-        (b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
-         b"property float y\nproperty float z\nend_header\n", "empty"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+            b"property float z\nend_header\n0 0 0\n",
+            "binary_little_endian",
+        ),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty double x\n"
+            b"property double y\nproperty double z\nend_header\n" + bytes(24),
+            "float x",
+        ),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
+            b"property float y\nproperty float z\nend_header\n",
+            "empty",
+        ),
     ],
-)  # fmt: skip
+)
 def test_malformed_cloud(scan_dir: Path, body: bytes, fragment: str) -> None:
     cloud = _first_cloud(scan_dir)
     cloud.write_bytes(body)
@@ -171,16 +180,26 @@ extrinsic = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
         (lambda t: t.replace('id = "silo-1"', 'id = "silo 1"'), ["silo.id", "pattern"]),
         (lambda t: t + "\n[mqtt]\nprot = 1\n", ["mqtt.prot", "unknown key"]),
         (lambda t: t.replace("floor_z = 0.0", 'floor_z = "zero"'), ["silo.floor_z"]),
-        (lambda t: t.replace("[[0, 0, 0, 1]]", "[[0, 0, 0, 1]]").replace(
-            "[[1, 0, 0, 0]", "[[2, 0, 0, 0]"), ["cameras.0", "orthonormal"]),
-        (lambda t: t.replace("region = [[-2, -2], [2, -2], [2, 2], [-2, 2]]",
-                             "region = [[0, 0], [1, 1], [1, 0], [0, 1]]"),
-         ["silo.region", "self-intersecting"]),
-        (lambda t: t.replace('source = "realsense"', 'source = "playback"'),
-         ["cameras.0", "playback = FILE"]),
+        (
+            lambda t: t.replace("[[0, 0, 0, 1]]", "[[0, 0, 0, 1]]").replace(
+                "[[1, 0, 0, 0]", "[[2, 0, 0, 0]"
+            ),
+            ["cameras.0", "orthonormal"],
+        ),
+        (
+            lambda t: t.replace(
+                "region = [[-2, -2], [2, -2], [2, 2], [-2, 2]]",
+                "region = [[0, 0], [1, 1], [1, 0], [0, 1]]",
+            ),
+            ["silo.region", "self-intersecting"],
+        ),
+        (
+            lambda t: t.replace('source = "realsense"', 'source = "playback"'),
+            ["cameras.0", "playback = FILE"],
+        ),
         (lambda t: t.replace("[silo]", "[silo\n"), ["not valid TOML"]),
     ],
-)  # fmt: skip
+)
 def test_bad_config_names_file_and_key(tmp_path: Path, edit, fragments) -> None:
     path = tmp_path / "agent.toml"
     path.write_text(edit(GOOD))

@@ -22,8 +22,10 @@ STEP = "0.05"  # coarse: these tests are about the batch, not the surface
 
 @pytest.fixture
 def two_scans(tmp_path: Path, cone_scan_4: Scan, cone_scan_2: Scan) -> list[Path]:
-    return [write_scan(replace(cone_scan_4, scan_id="four"), tmp_path / "a-four"),
-            write_scan(replace(cone_scan_2, scan_id="two"), tmp_path / "c-two")]  # fmt: skip
+    return [
+        write_scan(replace(cone_scan_4, scan_id="four"), tmp_path / "a-four"),
+        write_scan(replace(cone_scan_2, scan_id="two"), tmp_path / "c-two"),
+    ]
 
 
 def _lines(stdout: str) -> list[dict]:
@@ -38,8 +40,9 @@ def test_a_bad_directory_in_the_middle_fails_alone(tmp_path, two_scans: list[Pat
     bad = tmp_path / "b-broken"
     bad.mkdir()
     (bad / "scan.json").write_text("{not json")
-    done = run_cli("process", str(two_scans[0]), str(bad), str(two_scans[1]), "--json",
-                   "--grid-step", STEP)  # fmt: skip
+    done = run_cli(
+        "process", str(two_scans[0]), str(bad), str(two_scans[1]), "--json", "--grid-step", STEP
+    )
     assert done.returncode == 65, done.stderr
     results = _lines(done.stdout)
     assert [r["scan_dir"] for r in results] == [str(two_scans[0]), str(two_scans[1])]
@@ -51,8 +54,9 @@ def test_a_bad_directory_in_the_middle_fails_alone(tmp_path, two_scans: list[Pat
     assert errors[1] == "silo-agent: 2 of 3 scans processed, 1 failed"
 
 
-def test_each_json_line_is_the_scans_own_result(two_scans: list[Path],
-                                                cone_scan_4: Scan, cone_scan_2: Scan) -> None:
+def test_each_json_line_is_the_scans_own_result(
+    two_scans: list[Path], cone_scan_4: Scan, cone_scan_2: Scan
+) -> None:
     done = run_cli("process", *map(str, two_scans), "--json", "--grid-step", STEP)
     assert done.returncode == 0, done.stderr
     results = _lines(done.stdout)
@@ -91,8 +95,9 @@ def test_a_bad_config_stops_before_any_scan(tmp_path, two_scans: list[Path]) -> 
 def _stderr_on_a_terminal(*args: str) -> tuple[int, str]:
     """Run the CLI with stderr on a pseudo-terminal; (status, what the terminal showed)."""
     leader, follower = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "silo_agent", *args],
-                            stdout=subprocess.DEVNULL, stderr=follower)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "silo_agent", *args], stdout=subprocess.DEVNULL, stderr=follower
+    )
     os.close(follower)
     shown = b""
     while True:
@@ -118,27 +123,47 @@ def test_a_progress_bar_on_a_terminal_only(tmp_path, two_scans: list[Path]) -> N
     assert "/2 " not in shown  # two scans: no bar
 
 
-HEAVY = ["structlog", "asyncio", "open3d", "sklearn", "onnxruntime", "pyrealsense2",
-         "paho", "apscheduler", "silo_agent.telemetry", "silo_agent.capture",
-         "silo_agent.calibrate", "silo_agent.sim", "silo_agent.log"]  # fmt: skip
+HEAVY = [
+    "structlog",
+    "asyncio",
+    "open3d",
+    "sklearn",
+    "onnxruntime",
+    "pyrealsense2",
+    "paho",
+    "apscheduler",
+    "silo_agent.telemetry",
+    "silo_agent.capture",
+    "silo_agent.calibrate",
+    "silo_agent.sim",
+    "silo_agent.log",
+]
 
 
 def _imported(code: str) -> set[str]:
-    done = subprocess.run([sys.executable, "-c", code + "\nimport sys\nprint(*sys.modules)"],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", code + "\nimport sys\nprint(*sys.modules)"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     return set(done.stdout.split())
 
 
 def test_process_imports_only_what_its_path_needs(scan_dir: Path) -> None:
-    loaded = _imported("from silo_agent.cli import main\n"
-                       f"assert main(['process', {str(scan_dir)!r}, '--json']) == 0")  # fmt: skip
+    loaded = _imported(
+        "from silo_agent.cli import main\n"
+        f"assert main(['process', {str(scan_dir)!r}, '--json']) == 0"
+    )
     assert {"silo_agent.reconstruct", "silo_agent.detect"} <= loaded  # it did the work
     assert loaded.isdisjoint(HEAVY), sorted(loaded & set(HEAVY))
 
 
 def test_process_help_imports_no_numeric_library() -> None:
-    loaded = _imported("from silo_agent.cli import main\n"
-                       "try:\n    main(['process', '--help'])\nexcept SystemExit:\n    pass")
+    loaded = _imported(
+        "from silo_agent.cli import main\n"
+        "try:\n    main(['process', '--help'])\nexcept SystemExit:\n    pass"
+    )
     heavy = {"numpy", "scipy", "pydantic", "importlib.metadata", *HEAVY}
     assert loaded.isdisjoint(heavy), sorted(loaded & heavy)

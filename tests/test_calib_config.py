@@ -64,7 +64,7 @@ def test_rewrite_keeps_comments_and_reproduces_the_extrinsics(tmp_path: Path) ->
     new = path.read_text()
     for line in CONFIG.splitlines():
         if "#" in line and "row 0" not in line:
-            assert line[line.index("#"):] in new  # every comment kept
+            assert line[line.index("#") :] in new  # every comment kept
     assert "rotate_deg = [" in new and "translate_m = [" in new
     assert "0, 186, -5" not in new
     config = load_config(path)
@@ -75,8 +75,11 @@ def test_rewrite_keeps_comments_and_reproduces_the_extrinsics(tmp_path: Path) ->
     assert by_serial["cam-matrix"].width == 848
     assert config.calibration.drift_consecutive == 3
     # everything outside the camera poses is byte-identical
-    untouched = [line for line in CONFIG.splitlines()
-                 if not line.lstrip().startswith(("extrinsic", "[0,", "rotate", "translate"))]
+    untouched = [
+        line
+        for line in CONFIG.splitlines()
+        if not line.lstrip().startswith(("extrinsic", "[0,", "rotate", "translate"))
+    ]
     assert all(line in new.splitlines() for line in untouched)
 
 
@@ -97,8 +100,10 @@ def scan_dir(tmp_path_factory) -> Path:
 
 
 def _config_for(tmp_path: Path, serials: list[str]) -> Path:
-    cameras = "".join(f'\n[[cameras]]\nserial = "{s}"   # {s}\nsource = "sim"\nview = "{s[4:]}"\n'
-                      for s in serials)
+    cameras = "".join(
+        f'\n[[cameras]]\nserial = "{s}"   # {s}\nsource = "sim"\nview = "{s[4:]}"\n'
+        for s in serials
+    )
     path = tmp_path / "c.toml"
     path.write_text(CONFIG.split("[[cameras]]")[0] + cameras)
     return path
@@ -106,8 +111,16 @@ def _config_for(tmp_path: Path, serials: list[str]) -> Path:
 
 def test_cli_calibrate_write_round_trip(tmp_path: Path, scan_dir: Path) -> None:
     config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
-    done = run_cli("calibrate", "--config", str(config), "--scan", str(scan_dir), "--floor",
-                   "--write", "--json")
+    done = run_cli(
+        "calibrate",
+        "--config",
+        str(config),
+        "--scan",
+        str(scan_dir),
+        "--floor",
+        "--write",
+        "--json",
+    )
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     assert out["config_written"] and Path(out["backup"]).exists()
@@ -136,15 +149,18 @@ def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: P
 @pytest.mark.slow
 def test_cli_calibrate_capture_with_sim_cameras(tmp_path: Path) -> None:
     config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
-    config.write_text(config.read_text() + f"""
+    config.write_text(
+        config.read_text()
+        + f"""
 [simulation]
 scene = "cone"
 calib_error_deg = 0.5
 calib_error_m = 0.01
 
 [audit]
-directory = "{tmp_path / 'scans'}"
-""")
+directory = "{tmp_path / "scans"}"
+"""
+    )
     done = run_cli("calibrate", "--config", str(config), "--capture", "--floor", "--json")
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
@@ -155,8 +171,16 @@ directory = "{tmp_path / 'scans'}"
     assert len(kept) == 1  # the calibration scan is kept for audit
 
     # written back, the next calibration scan finds the cameras where the config says
-    done = run_cli("calibrate", "--config", str(config), "--scan", str(kept[0].parent),
-                   "--floor", "--write", "--json")
+    done = run_cli(
+        "calibrate",
+        "--config",
+        str(config),
+        "--scan",
+        str(kept[0].parent),
+        "--floor",
+        "--write",
+        "--json",
+    )
     assert done.returncode == 0, done.stderr
     again = run_cli("calibrate", "--config", str(config), "--capture", "--floor", "--json")
     assert again.returncode == 0, again.stderr

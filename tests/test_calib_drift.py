@@ -64,8 +64,9 @@ def test_quiet_on_repeated_scans_of_an_unchanged_scene() -> None:
 def _camera_with_gravity(extrinsic: np.ndarray, true_rotation: np.ndarray) -> CameraCloud:
     """A camera whose IMU (gravity, down, camera axes) reads its true rotation's gravity."""
     gravity = true_rotation.T @ np.array([0.0, 0.0, -9.80665])
-    return CameraCloud("cam", np.zeros((1, 3), np.float32), extrinsic,
-                       extra={"gravity": gravity.tolist()})
+    return CameraCloud(
+        "cam", np.zeros((1, 3), np.float32), extrinsic, extra={"gravity": gravity.tolist()}
+    )
 
 
 def test_gravity_vector_disagreeing_with_the_extrinsic() -> None:
@@ -80,8 +81,9 @@ def test_gravity_vector_disagreeing_with_the_extrinsic() -> None:
 
     state, raised = DriftState(), []
     for _ in range(3):
-        state, events = drift_step(state, {}, gravity_angles([knocked_camera]), SETTINGS,
-                                   {"cam": 1.5})
+        state, events = drift_step(
+            state, {}, gravity_angles([knocked_camera]), SETTINGS, {"cam": 1.5}
+        )
         raised += events
     assert [(e.kind, e.key) for e in raised] == [("raised", "gravity:cam")]
     assert raised[0].value == pytest.approx(2.0, abs=1e-6)
@@ -104,11 +106,17 @@ def test_the_calibration_alarm_follows_the_drift_detector() -> None:
 
     state, seen, published = AlarmState(), [], []
     for k, residual in enumerate([0.02, 0.02, 0.02, 0.02, 0.001, 0.001, 0.001]):
-        inputs = Inputs(scan_id=f"s{k}", heightmap=None, volume_m3=None, coverage=1.0,
-                        valid=True, registration_residual_m={"a|b": residual},
-                        gravity_deg={"a": 0.1}, gravity_tolerance_deg={"a": 3.0})
-        events, state = evaluate(state, inputs, AlarmsConfig(), detectors={},
-                                 calibration=SETTINGS)
+        inputs = Inputs(
+            scan_id=f"s{k}",
+            heightmap=None,
+            volume_m3=None,
+            coverage=1.0,
+            valid=True,
+            registration_residual_m={"a|b": residual},
+            gravity_deg={"a": 0.1},
+            gravity_tolerance_deg={"a": 3.0},
+        )
+        events, state = evaluate(state, inputs, AlarmsConfig(), detectors={}, calibration=SETTINGS)
         seen += [(k, e["type"], e["state"]) for e in events]
         published += [alarm_payload(Envelope.new(k + 1), e) for e in events]  # as MQTT does
         state = AlarmState.from_json(state.to_json())  # as the agent persists it

@@ -15,8 +15,9 @@ def _plane_capture(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, fl
     ray, deprojected as a D455 does: (points, the plane's unit normal, its offset)."""
     k = INTRINSICS
     u, v = np.meshgrid(np.arange(k["width"]), np.arange(k["height"]))
-    rays = np.column_stack([(u.ravel() - k["ppx"]) / k["fx"], (v.ravel() - k["ppy"]) / k["fy"],
-                            np.ones(u.size)])  # fmt: skip
+    rays = np.column_stack(
+        [(u.ravel() - k["ppx"]) / k["fx"], (v.ravel() - k["ppy"]) / k["fy"], np.ones(u.size)]
+    )
     normal = np.array([0.0, np.sin(np.radians(50)), -np.cos(np.radians(50))])
     offset = -3.0 * np.cos(np.radians(50))
     depth = offset / (rays @ normal)  # exact hit (z = depth: the rays have unit z)
@@ -40,8 +41,10 @@ def test_pooled_captures_are_averaged_per_pixel() -> None:
 def test_colours_are_averaged_with_their_pixels() -> None:
     rng = np.random.default_rng(2)
     points = [_plane_capture(rng)[0] for _ in range(2)]
-    colours = [np.full((len(p), 3), value, dtype=np.uint8)
-               for p, value in zip(points, (10, 30), strict=True)]
+    colours = [
+        np.full((len(p), 3), value, dtype=np.uint8)
+        for p, value in zip(points, (10, 30), strict=True)
+    ]
     colours[1][0] = (200, 200, 200)  # pixel 0 of the second capture
     averaged, mixed = pixel_means(np.vstack(points), np.vstack(colours), INTRINSICS)
     assert mixed is not None and mixed.dtype == np.uint8 and len(mixed) == len(averaged)

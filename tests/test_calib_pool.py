@@ -26,8 +26,10 @@ VIEWS = ["A1", "A3"]
 @pytest.fixture(scope="module")
 def repeats():
     """Two scans of the same rig, cameras 0.5 deg / 1 cm off, independent noise."""
-    true = {view: perturb(view_pose(rig().scene, view), 0.5, 0.01,
-                          np.random.default_rng(200 + k)) for k, view in enumerate(VIEWS)}
+    true = {
+        view: perturb(view_pose(rig().scene, view), 0.5, 0.01, np.random.default_rng(200 + k))
+        for k, view in enumerate(VIEWS)
+    }
     return render_repeats(VIEWS, seed=7, count=2, true_poses=true)
 
 
@@ -50,13 +52,15 @@ def test_pooled_scans_average_each_pixel(repeats) -> None:
         near_b, ib = cKDTree(_rays(pb)).query(_rays(got))
         in_a, in_b = near_a < 1e-5, near_b < 1e-5  # one pixel is 2.3e-3 wide
         assert np.all(in_a | in_b)
-        expected = np.where((in_a & in_b)[:, None], (pa[ia] + pb[ib]) / 2,
-                            np.where(in_a[:, None], pa[ia], pb[ib]))  # fmt: skip
+        expected = np.where(
+            (in_a & in_b)[:, None], (pa[ia] + pb[ib]) / 2, np.where(in_a[:, None], pa[ia], pb[ib])
+        )
         np.testing.assert_allclose(got, expected, atol=2e-6)
         shared = int(np.sum(cKDTree(_rays(pb)).query(_rays(pa))[0] < 1e-5))
         assert len(got) == len(pa) + len(pb) - shared
-        np.testing.assert_allclose(camera.extra["gravity"],
-                                   np.mean([a.extra["gravity"], b.extra["gravity"]], axis=0))
+        np.testing.assert_allclose(
+            camera.extra["gravity"], np.mean([a.extra["gravity"], b.extra["gravity"]], axis=0)
+        )
     together = calibrate(pooled, CalibrationConfig(), floor=True)
     alone = calibrate(first, CalibrationConfig(), floor=True)
     for c, a in zip(together.cameras, alone.cameras, strict=True):
@@ -78,8 +82,9 @@ def test_one_scan_pools_to_itself(repeats) -> None:
 
 def test_scans_of_other_cameras_are_refused_naming_the_scan(repeats) -> None:
     first, second = repeats
-    other = replace(second, cameras=[second.cameras[0],
-                                     replace(second.cameras[1], serial="sim-A5")])
+    other = replace(
+        second, cameras=[second.cameras[0], replace(second.cameras[1], serial="sim-A5")]
+    )
     with pytest.raises(ScanMismatch) as caught:
         pool_scans([first, other], ["one/scan.json", "two/scan.json"])
     message = str(caught.value)
@@ -119,8 +124,9 @@ calib_error_m = 0.01
 
 
 def _config(tmp_path: Path) -> Path:
-    cameras = "".join(f'\n[[cameras]]\nserial = "sim-{v}"   # {v}\nsource = "sim"\nview = "{v}"\n'
-                      for v in VIEWS)
+    cameras = "".join(
+        f'\n[[cameras]]\nserial = "sim-{v}"   # {v}\nsource = "sim"\nview = "{v}"\n' for v in VIEWS
+    )
     path = tmp_path / "silo.toml"
     path.write_text(CONFIG.format(cameras=cameras, audit=tmp_path / "scans"))
     return path
@@ -130,35 +136,59 @@ def _config(tmp_path: Path) -> Path:
 def test_cli_pools_repeated_scans_and_refuses_a_mismatch(tmp_path: Path, repeats) -> None:
     dirs = [write_scan(s, tmp_path / f"scan{k}") for k, s in enumerate(repeats)]
     config = _config(tmp_path)
-    done = run_cli("calibrate", "--config", str(config), "--scan", str(dirs[0]),
-                   "--scan", str(dirs[1]), "--floor", "--write", "--json")
+    done = run_cli(
+        "calibrate",
+        "--config",
+        str(config),
+        "--scan",
+        str(dirs[0]),
+        "--scan",
+        str(dirs[1]),
+        "--floor",
+        "--write",
+        "--json",
+    )
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     assert out["config_written"] and Path(out["backup"]).exists()
     assert abs(out["registration_residual_m"]["sim-A1|sim-A3"]["after"]) < 0.002
-    expected = calibrate(pool_scans(repeats), CalibrationConfig(), floor=True,
-                         site=site_from_config(load_config(config)))
+    expected = calibrate(
+        pool_scans(repeats),
+        CalibrationConfig(),
+        floor=True,
+        site=site_from_config(load_config(config)),
+    )
     for camera, want in zip(out["cameras"], expected.cameras, strict=True):
         np.testing.assert_allclose(camera["extrinsic"], want.after, atol=2e-4)
 
     other = write_scan(replace(repeats[1], cameras=repeats[1].cameras[:1]), tmp_path / "one")
-    done = run_cli("calibrate", "--config", str(config), "--scan", str(dirs[0]),
-                   "--scan", str(other), "--floor")
+    done = run_cli(
+        "calibrate",
+        "--config",
+        str(config),
+        "--scan",
+        str(dirs[0]),
+        "--scan",
+        str(other),
+        "--floor",
+    )
     assert done.returncode == 65 and done.stdout == ""
     assert done.stderr.count("\n") == 1
-    assert f"{other / 'scan.json'}: not the same cameras as {dirs[0] / 'scan.json'}" \
-        in done.stderr and "sim-A3" in done.stderr
+    assert (
+        f"{other / 'scan.json'}: not the same cameras as {dirs[0] / 'scan.json'}" in done.stderr
+        and "sim-A3" in done.stderr
+    )
 
-    done = run_cli("calibrate", "--config", str(config), "--scan", str(dirs[0]),
-                   "--captures", "2")
+    done = run_cli("calibrate", "--config", str(config), "--scan", str(dirs[0]), "--captures", "2")
     assert done.returncode == 2 and "--captures goes with --capture" in done.stderr
 
 
 @pytest.mark.slow
 def test_cli_takes_several_captures_in_a_row(tmp_path: Path) -> None:
     config = _config(tmp_path)
-    done = run_cli("calibrate", "--config", str(config), "--capture", "--captures", "2",
-                   "--floor", "--json")
+    done = run_cli(
+        "calibrate", "--config", str(config), "--capture", "--captures", "2", "--floor", "--json"
+    )
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     residual = out["registration_residual_m"]["sim-A1|sim-A3"]

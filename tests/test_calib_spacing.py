@@ -114,24 +114,35 @@ distance_m = 3.537              # measured twice: both count
 def test_spacing_entries_validate_with_a_default_sigma() -> None:
     config = parse_config(tomllib.loads(CONFIG), "c.toml")
     first, second = config.calibration.spacing
-    assert (first.a, first.b, first.distance_m, first.sigma_m) == ("sim-A1", "sim-A3", 3.536,
-                                                                   0.002)
+    assert (first.a, first.b, first.distance_m, first.sigma_m) == ("sim-A1", "sim-A3", 3.536, 0.002)
     assert second.sigma_m == SPACING_SIGMA_M == 0.003
 
 
-@pytest.mark.parametrize(("change", "expected"), [
-    (('b = "sim-A3"\ndistance_m = 3.536', 'b = "sim-A7"\ndistance_m = 3.536'),
-     r"c\.toml: calibration\.spacing\.0\.b: unknown camera serial 'sim-A7', expected the "
-     r"serial of one of the \[\[cameras\]\] \(sim-A1, sim-A3\)"),
-    (('b = "sim-A3"\ndistance_m = 3.536', 'b = "sim-A1"\ndistance_m = 3.536'),
-     r"c\.toml: calibration\.spacing\.0: .*same camera"),
-    (("distance_m = 3.536", "distance_m = -1"),
-     r"c\.toml: calibration\.spacing\.0\.distance_m: .*greater than 0"),
-    (("sigma_m = 0.002", "sigma_mm = 2"),
-     r"c\.toml: calibration\.spacing\.0\.sigma_mm: unknown key"),
-])  # fmt: skip
-def test_bad_spacing_entries_are_clear_config_errors(change: tuple[str, str],
-                                                     expected: str) -> None:
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (
+            ('b = "sim-A3"\ndistance_m = 3.536', 'b = "sim-A7"\ndistance_m = 3.536'),
+            r"c\.toml: calibration\.spacing\.0\.b: unknown camera serial 'sim-A7', expected the "
+            r"serial of one of the \[\[cameras\]\] \(sim-A1, sim-A3\)",
+        ),
+        (
+            ('b = "sim-A3"\ndistance_m = 3.536', 'b = "sim-A1"\ndistance_m = 3.536'),
+            r"c\.toml: calibration\.spacing\.0: .*same camera",
+        ),
+        (
+            ("distance_m = 3.536", "distance_m = -1"),
+            r"c\.toml: calibration\.spacing\.0\.distance_m: .*greater than 0",
+        ),
+        (
+            ("sigma_m = 0.002", "sigma_mm = 2"),
+            r"c\.toml: calibration\.spacing\.0\.sigma_mm: unknown key",
+        ),
+    ],
+)
+def test_bad_spacing_entries_are_clear_config_errors(
+    change: tuple[str, str], expected: str
+) -> None:
     text = CONFIG.replace(*change)
     assert text != CONFIG
     with pytest.raises(ConfigError, match=expected):
@@ -145,8 +156,10 @@ def test_calibrate_write_keeps_the_spacing_entries(tmp_path: Path) -> None:
     write_calibrated_config(path, poses)
     new = path.read_text()
     assert new.count("[[calibration.spacing]]") == 2 and "# laser meter, 2026-11-30" in new
-    assert load_config(path).calibration.spacing == parse_config(tomllib.loads(CONFIG),
-                                                                 "c").calibration.spacing
+    assert (
+        load_config(path).calibration.spacing
+        == parse_config(tomllib.loads(CONFIG), "c").calibration.spacing
+    )
 
 
 @pytest.mark.slow
@@ -155,7 +168,9 @@ def test_cli_reports_each_spacing_before_and_after(tmp_path: Path) -> None:
     directory = write_scan(scan, tmp_path / "scan")
     measured = _distance(truth, "sim-A1", "sim-A5")
     path = tmp_path / "c.toml"
-    path.write_text(CONFIG.split("[[cameras]]")[0] + f"""
+    path.write_text(
+        CONFIG.split("[[cameras]]")[0]
+        + f"""
 [[cameras]]
 serial = "sim-A1"
 source = "sim"
@@ -170,9 +185,11 @@ view = "A5"
 a = "sim-A1"
 b = "sim-A5"
 distance_m = {measured:.4f}
-""")
-    done = run_cli("calibrate", "--config", str(path), "--scan", str(directory), "--floor",
-                   "--json")
+"""
+    )
+    done = run_cli(
+        "calibrate", "--config", str(path), "--scan", str(directory), "--floor", "--json"
+    )
     assert done.returncode == 0, done.stderr
     (out,) = json.loads(done.stdout)["spacing"]
     assert (out["a"], out["b"], out["sigma_m"]) == ("sim-A1", "sim-A5", 0.003)

@@ -39,11 +39,13 @@ def make_config(cameras: list[dict[str, Any]]) -> Config:
     return parse_config(
         {
             "silo": {"id": "silo-t", "region": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
-            "cameras": [{**base, **{k: str(v) if isinstance(v, Path) else v for k, v in c.items()}}
-                        for c in cameras],
+            "cameras": [
+                {**base, **{k: str(v) if isinstance(v, Path) else v for k, v in c.items()}}
+                for c in cameras
+            ],
         },
         "test",
-    )  # fmt: skip
+    )
 
 
 def plane(intrinsics: dict[str, float], distance_m: float) -> np.ndarray:
@@ -102,9 +104,10 @@ def test_plane_points_equal_the_deprojection_at_default_resolution(tmp_path: Pat
         )
         np.testing.assert_allclose(cloud.points[index], want, atol=1e-5)
     assert cloud.intrinsics == {
-        **{k: pytest.approx(v) for k, v in d455.items()}, "model": "brown_conrady",
+        **{k: pytest.approx(v) for k, v in d455.items()},
+        "model": "brown_conrady",
         "coeffs": [0.0] * 5,
-    }  # fmt: skip
+    }
     assert cloud.extra["firmware"] == "5.16.0.1"
     assert cloud.extra["depth_units"] == pytest.approx(UNITS)
     assert cloud.extra["frames_aggregated"] == 3
@@ -130,9 +133,12 @@ def test_pile_through_the_default_filter_chain_lands_on_the_surface(tmp_path: Pa
     assert np.percentile(np.abs(error), 99) < 0.03
     assert 0.9 < silo[:, 2].max() <= 1.0  # the apex is smoothed a little, not cut off
     assert cloud.extra["filters"] == [
-        "threshold_filter", "disparity_transform", "spatial_filter", "temporal_filter",
+        "threshold_filter",
         "disparity_transform",
-    ]  # fmt: skip
+        "spatial_filter",
+        "temporal_filter",
+        "disparity_transform",
+    ]
 
 
 def test_threshold_and_decimation_use_the_filtered_stream_intrinsics(tmp_path: Path) -> None:
@@ -189,9 +195,16 @@ def test_temporal_aggregation_smooths_too(tmp_path: Path) -> None:
     frames = [np.round(2000 + rng.normal(0, 8.0, (96, 160))).astype(np.uint16) for _ in range(10)]
     path = record(tmp_path / "t.db3", "445", frames)
     config = make_config(
-        [{"serial": "445", "playback": path, "frames": 8, "temporal_filter": True,
-          "aggregation": "temporal"}]
-    )  # fmt: skip
+        [
+            {
+                "serial": "445",
+                "playback": path,
+                "frames": 8,
+                "temporal_filter": True,
+                "aggregation": "temporal",
+            }
+        ]
+    )
     cloud = capture_one(config)
     assert np.std(cloud.points[:, 2]) / UNITS < 0.7 * 8.0
     assert cloud.extra["aggregation"] == "temporal"
@@ -301,9 +314,11 @@ def test_imu_gravity_is_stored_and_a_tilt_is_warned(tmp_path: Path) -> None:
     level = record(tmp_path / "lvl.db3", "IMU1", [plane(SMALL, 2.0)] * 5, accel=(0, 0, -9.81))
     tilt = np.radians(10.0)
     knocked = record(
-        tmp_path / "tilt.db3", "IMU2", [plane(SMALL, 2.0)] * 5,
+        tmp_path / "tilt.db3",
+        "IMU2",
+        [plane(SMALL, 2.0)] * 5,
         accel=(0, 9.81 * np.sin(tilt), -9.81 * np.cos(tilt)),
-    )  # fmt: skip
+    )
     config = make_config(
         [{"serial": "IMU1", "playback": level}, {"serial": "IMU2", "playback": knocked}]
     )

@@ -68,6 +68,10 @@ def test_accelerometer_is_recorded(tmp_path: Path) -> None:
 def test_rejects_frames_of_the_wrong_shape(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"depth_frames\[1\]"):
         write_recording(
-            tmp_path / "bad.db3", "SN", INTRINSICS,
-            [np.zeros((48, 64), np.uint16), np.zeros((40, 64), np.uint16)], 0.001, 30,
-        )  # fmt: skip
+            tmp_path / "bad.db3",
+            "SN",
+            INTRINSICS,
+            [np.zeros((48, 64), np.uint16), np.zeros((40, 64), np.uint16)],
+            0.001,
+            30,
+        )

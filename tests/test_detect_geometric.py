@@ -61,8 +61,16 @@ def test_summary_and_description_carry_the_piles(piles_result) -> None:
     summary = json.loads(json.dumps(piles_result.summary(), allow_nan=False))
     assert summary["robots"] is None  # no model configured
     first = summary["piles"][0]
-    assert set(first) == {"id", "detector", "centroid", "peak", "peak_height_m", "footprint_m2",
-                          "volume_m3", "confidence"}  # fmt: skip
+    assert set(first) == {
+        "id",
+        "detector",
+        "centroid",
+        "peak",
+        "peak_height_m",
+        "footprint_m2",
+        "volume_m3",
+        "confidence",
+    }
     assert Pile.from_json(first) == piles_result.piles[0]
     text = piles_result.describe()
     assert "piles     4" in text and text.count(" geometric ") == 4
@@ -95,16 +103,22 @@ def flat_scene(level: float):
     """A walled bay with grain at one level everywhere: no pile anywhere."""
     crater = make_scene("crater")
     return dataclasses.replace(
-        crater, name="flat", height=_bay(lambda x, y: np.full(np.shape(x), level), 3.0),
-        volume_m3=level * 36.0, target=(0.0, 0.0, level),
-    )  # fmt: skip
+        crater,
+        name="flat",
+        height=_bay(lambda x, y: np.full(np.shape(x), level), 3.0),
+        volume_m3=level * 36.0,
+        target=(0.0, 0.0, level),
+    )
 
 
 def test_no_pile_on_a_bare_floor() -> None:
     floor = dataclasses.replace(
-        make_scene("cone"), name="floor", height=lambda x, y: np.zeros(np.shape(x)),
-        volume_m3=0.0, target=(0.0, 0.0, 0.0),
-    )  # fmt: skip
+        make_scene("cone"),
+        name="floor",
+        height=lambda x, y: np.zeros(np.shape(x)),
+        volume_m3=0.0,
+        target=(0.0, 0.0, 0.0),
+    )
     result = analyse(simulate(floor, VIEWS, seed=3), SETTINGS, DetectionConfig())
     assert result.piles == []
 
@@ -139,8 +153,13 @@ def test_pile_ids_stay_with_their_piles_across_scans(piles_result) -> None:
         before = nearest(earlier, t.centroid[:2])
         after = nearest(second.piles, (t.centroid[0] + 0.06, t.centroid[1] - 0.04))
         assert after.id == before.id
-        assert np.hypot(after.centroid[0] - before.centroid[0] - 0.06,
-                        after.centroid[1] - before.centroid[1] + 0.04) < 0.05  # fmt: skip
+        assert (
+            np.hypot(
+                after.centroid[0] - before.centroid[0] - 0.06,
+                after.centroid[1] - before.centroid[1] + 0.04,
+            )
+            < 0.05
+        )
 
 
 def pile(pile_id: int, x: float, y: float, detector: str = "geometric") -> Pile:
@@ -186,8 +205,7 @@ def test_process_prints_piles_by_default_without_onnxruntime(piles_scan: Scan, t
         "assert 'onnxruntime' not in sys.modules\n"
         "sys.exit(status)\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=120)  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     summary = json.loads(done.stdout)
     assert len(summary["piles"]) == 4
@@ -211,8 +229,9 @@ def test_scan_carries_pile_ids_over_from_the_latest_earlier_result(tmp_path) -> 
     result("silo-1-20260101T030000Z", [pile(9, 0.0, 0.0)])  # later than the scan: ignored
     cache = AuditCache(AuditConfig(directory=tmp_path), "silo-1")
     assert previous_piles(cache, "silo-1-20260101T020000Z") == [
-        pile(2, 1.0, 1.0), pile(5, 2.0, 0.0, "onnx")
-    ]  # fmt: skip
+        pile(2, 1.0, 1.0),
+        pile(5, 2.0, 0.0, "onnx"),
+    ]
     assert previous_piles(cache, "silo-1-20251231T000000Z") == []
 
 
@@ -224,8 +243,11 @@ def test_basin_peaks_are_ndimage_maximum_and_its_position_ties_included() -> Non
     rng = np.random.default_rng(3)
     for trial in range(50):
         shape = (int(rng.integers(5, 40)), int(rng.integers(5, 40)))
-        values = (rng.integers(0, 4, shape).astype(float) if trial % 2  # many ties
-                  else rng.normal(size=shape))  # fmt: skip
+        values = (
+            rng.integers(0, 4, shape).astype(float)
+            if trial % 2  # many ties
+            else rng.normal(size=shape)
+        )
         values[rng.random(shape) < 0.2] = np.nan  # outside the region, label 0
         labels = rng.integers(1, 9, shape)
         labels[np.isnan(values)] = 0

@@ -78,10 +78,12 @@ def scan() -> Scan:
     colors = np.full((len(points), 3), GREY, dtype=np.uint8)
     colors[near_top, 0] = RED
     camera = CameraCloud(
-        serial="top", points=points.astype(np.float32), extrinsic=EXTRINSIC,
+        serial="top",
+        points=points.astype(np.float32),
+        extrinsic=EXTRINSIC,
         intrinsics={"width": W, "height": H, "fx": F, "fy": F, "ppx": PPX, "ppy": PPY},
         colors=colors,
-    )  # fmt: skip
+    )
     region = np.array([[-1.5, -1.5], [1.5, -1.5], [1.5, 1.5], [-1.5, 1.5]])
     site = Site(region=region, floor_z=0.0, ceiling_z=2.0)
     return Scan("onnx-test", "2026-01-01T00:00:00Z", "test", site, [camera])
@@ -119,11 +121,12 @@ def build_model(
         const("geometry", TensorProto.FLOAT, list(geometry.shape), geometry.ravel().tolist()),
     ]
     graph = helper.make_graph(
-        nodes, "yolo-test",
+        nodes,
+        "yolo-test",
         [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, imgsz, imgsz])],
         [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, 4 + nc + extra_rows, n])],
         inits,
-    )  # fmt: skip
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     props = {"imgsz": f"[{imgsz}, {imgsz}]", "task": "detect"}
@@ -208,8 +211,9 @@ def test_model_boxes_after_decoding_threshold_and_nms(scan: Scan, model_path: Pa
     assert robot.centre == pytest.approx(ROBOT_UV, abs=1e-3)
 
 
-def test_an_input_padded_at_the_top_instead_of_centred_misses_both(scan: Scan,
-                                                                   model_path: Path) -> None:
+def test_an_input_padded_at_the_top_instead_of_centred_misses_both(
+    scan: Scan, model_path: Path
+) -> None:
     """The model is sensitive to the letterbox: the same scaled image without the centring
     shift puts the apexes 40 px off their pixels, and nothing passes the threshold."""
     model = YoloModel(model_path)
@@ -229,8 +233,9 @@ def test_boxes_become_a_pile_and_a_robot_in_the_silo_frame(scan: Scan, model_pat
     (robot,) = result.robots
     expected = to_silo(cast(np.floor(ROBOT_UV[0]), np.floor(ROBOT_UV[1])))
     assert (robot.x, robot.y, robot.z) == pytest.approx(tuple(expected), abs=1e-4)
-    assert robot.radius_m == pytest.approx(np.hypot(72, 72) / F * (CAMERA_Z - expected[2]) / 2,
-                                           rel=1e-4)  # fmt: skip
+    assert robot.radius_m == pytest.approx(
+        np.hypot(72, 72) / F * (CAMERA_Z - expected[2]) / 2, rel=1e-4
+    )
     assert robot.confidence == pytest.approx(0.95)
     # its points are not grain: the volume is the cone's, not the cone's and the bump's
     plain = reconstruct(scan, ReconstructionConfig())

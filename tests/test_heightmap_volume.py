@@ -25,9 +25,12 @@ MM = 0.0005  # a layer value is rounded to the millimetre
 def documented_decoder() -> dict:
     """The `# SLHM decoder` block of the user documentation, executed as a user would."""
     pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-    blocks = [m.group(1) for page in pages if page.is_file()
-              for m in re.finditer(r"```python\n(# SLHM decoder.*?)```", page.read_text(),
-                                   re.S)]  # fmt: skip
+    blocks = [
+        m.group(1)
+        for page in pages
+        if page.is_file()
+        for m in re.finditer(r"```python\n(# SLHM decoder.*?)```", page.read_text(), re.S)
+    ]
     assert len(blocks) == 1, "the documentation has exactly one SLHM decoder"
     namespace: dict = {}
     exec(compile(blocks[0], "documented SLHM decoder", "exec"), namespace)
@@ -39,8 +42,9 @@ def published():
     """A real result of the engine: a cone seen from two walls, 5 cm grid."""
     scene = make_scene("cone", "wheat")
     scan = simulate(scene, ["A1", "A5"], 0, (0.0, 0.0), 0.05)
-    result = analyse(scan, ReconstructionConfig.model_validate(scan.reconstruction),
-                     DetectionConfig()).reconstruction  # fmt: skip
+    result = analyse(
+        scan, ReconstructionConfig.model_validate(scan.reconstruction), DetectionConfig()
+    ).reconstruction
     return scan, result, encode_heightmap(result.heightmap, scan.scan_id)
 
 
@@ -58,8 +62,9 @@ def test_volume_integrated_from_the_decoded_map_is_the_published_volume(publishe
     # 1 mm²/12) and inside to 1/255 (variance (1/255)²/12), independent cell to cell, so the
     # sum's error has sigma = step² sqrt(sum(inside² mm²/12 + counted² /(12 x 255²))); allow 6.
     counted, inside = np.nan_to_num(m["counted"]), m["inside"]
-    sigma = m["step"] ** 2 * float(np.sqrt(np.sum(inside**2 * 1e-6 / 12
-                                                  + counted**2 / (12 * 255**2))))  # fmt: skip
+    sigma = m["step"] ** 2 * float(
+        np.sqrt(np.sum(inside**2 * 1e-6 / 12 + counted**2 / (12 * 255**2)))
+    )
     assert abs(volume - result.volume_m3) <= 6 * sigma
     assert 6 * sigma < 5e-4 * result.volume_m3  # tight: the old 0.2 % gap would not pass
     bound = 6 * sigma
@@ -99,7 +104,7 @@ def test_version_1_maps_still_decode_and_version_2_extends_version_1(published) 
     fields = list(HEADER.unpack_from(blob))
     end = HEADER.size + sum(fields[12:17])  # frame, scan id and the three layers
     fields[1] = 1
-    v1 = HEADER.pack(*fields) + blob[HEADER.size:end]
+    v1 = HEADER.pack(*fields) + blob[HEADER.size : end]
     old = decode_heightmap(v1)
     assert old.counted is None and old.floor_z is None and old.captured_at is None
     new = decode_heightmap(blob)
@@ -109,8 +114,12 @@ def test_version_1_maps_still_decode_and_version_2_extends_version_1(published) 
     rows, cols = struct.unpack_from("<II", blob, 8)
     z0, unknown, nf, ns, nh = struct.unpack_from("<dHHHI", blob, 40)
     pos = 66 + nf + ns
-    codes = np.cumsum(np.frombuffer(zlib.decompress(blob[pos:pos + nh]), "<u2")
-                      .reshape(rows, cols), axis=1, dtype=np.uint16)  # fmt: skip
-    np.testing.assert_array_equal(np.where(codes == unknown, np.nan, z0 + codes / 1000.0),
-                                  new.heights)  # fmt: skip
+    codes = np.cumsum(
+        np.frombuffer(zlib.decompress(blob[pos : pos + nh]), "<u2").reshape(rows, cols),
+        axis=1,
+        dtype=np.uint16,
+    )
+    np.testing.assert_array_equal(
+        np.where(codes == unknown, np.nan, z0 + codes / 1000.0), new.heights
+    )
     assert new.counted is not None and new.captured_at == result.heightmap.captured_at

@@ -37,14 +37,17 @@ def test_requests_within_the_configured_limits():
         session_limits(settings, LiveRequest(on=True, duration_s=901))
 
 
-@pytest.mark.parametrize(("payload", "problem"), [
-    (b'{"on": "yes"}', "on:"),
-    (b'{"rate_hz": 2}', "on: Field required"),
-    (b'{"on": true, "rate_hz": 0}', "rate_hz:"),
-    (b"[1]", "invalid live request"),
-    (b"\xff", "invalid live request"),
-    (b'{"on": true, "x": ' + b"1" * 5000 + b"}", "payload too large"),
-])
+@pytest.mark.parametrize(
+    ("payload", "problem"),
+    [
+        (b'{"on": "yes"}', "on:"),
+        (b'{"rate_hz": 2}', "on: Field required"),
+        (b'{"on": true, "rate_hz": 0}', "rate_hz:"),
+        (b"[1]", "invalid live request"),
+        (b"\xff", "invalid live request"),
+        (b'{"on": true, "x": ' + b"1" * 5000 + b"}", "payload too large"),
+    ],
+)
 def test_bad_requests_name_the_problem(payload: bytes, problem: str):
     with pytest.raises(ValueError, match=problem):
         parse_live_request(payload)
@@ -55,8 +58,13 @@ def test_cells_not_seen_live_start_from_the_last_full_scan():
     the other half keeps the last full scan's (sloped) heights, not the nearest seen cell's."""
     grid = Grid.over(np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]), 0.05)
     xs, _ys = grid.centres()
-    scanned = HeightMap(grid.origin, grid.step, (0.5 + 0.1 * xs).astype(np.float32),
-                        np.ones(grid.shape, bool), grid.inside)
+    scanned = HeightMap(
+        grid.origin,
+        grid.step,
+        (0.5 + 0.1 * xs).astype(np.float32),
+        np.ones(grid.shape, bool),
+        grid.inside,
+    )
     down = np.diag([1.0, -1.0, -1.0, 1.0])  # optical z down, image x along +x
     down[:3, 3] = (-0.5, 0.0, 3.0)  # 2 m above the plane at z = 1
     width, height, f = 100, 200, 100.0  # sees x in [-1.5, 0.5], y in [-2, 2] at 2 m: clip
@@ -69,6 +77,7 @@ def test_cells_not_seen_live_start_from_the_last_full_scan():
         update = live.update([frame], 0.0)
         left, right = xs < -0.1, xs > 0.1
         np.testing.assert_allclose(update.heightmap.heights[left], 1.0, atol=1e-3)
-        np.testing.assert_allclose(update.heightmap.heights[right], expected_right[right],
-                                   atol=1e-3)  # fmt: skip
+        np.testing.assert_allclose(
+            update.heightmap.heights[right], expected_right[right], atol=1e-3
+        )
         assert update.heightmap.observed[left].all() and not update.heightmap.observed[right].any()

@@ -48,8 +48,9 @@ class Listener:
         self.messages: list[Got] = []
         self._lock = threading.Lock()
         ready = threading.Event()
-        self.client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"live-{next(counter)}",
-                                  protocol=mqtt.MQTTv5)  # fmt: skip
+        self.client = mqtt.Client(
+            CallbackAPIVersion.VERSION2, client_id=f"live-{next(counter)}", protocol=mqtt.MQTTv5
+        )
         self.client.on_connect = lambda c, *a: c.subscribe([(t, 1) for t in topics])
         self.client.on_subscribe = lambda *a: ready.set()
         self.client.on_message = self._message
@@ -59,8 +60,9 @@ class Listener:
 
     def _message(self, _client, _userdata, msg) -> None:
         with self._lock:
-            self.messages.append(Got(msg.topic, bytes(msg.payload), msg.qos, bool(msg.retain),
-                                     time.monotonic()))  # fmt: skip
+            self.messages.append(
+                Got(msg.topic, bytes(msg.payload), msg.qos, bool(msg.retain), time.monotonic())
+            )
 
     def on(self, topic: str) -> list[Got]:
         with self._lock:
@@ -91,10 +93,19 @@ class Listener:
 
 def live_config(path: Path, port: int, workdir: Path, live: dict, schedule: dict) -> Path:
     """Four wall cameras at 212x120 (the renderer must keep up on a loaded test machine)."""
-    write_config(path, port, workdir, schedule=schedule, simulation={"capture_s": 1.0},
-                 cameras=tuple((f"sim-{v}", v) for v in ("A2", "A4", "A6", "A8")))
-    text = path.read_text().replace("width = 424", "width = 212").replace("height = 240",
-                                                                          "height = 120")
+    write_config(
+        path,
+        port,
+        workdir,
+        schedule=schedule,
+        simulation={"capture_s": 1.0},
+        cameras=tuple((f"sim-{v}", v) for v in ("A2", "A4", "A6", "A8")),
+    )
+    text = (
+        path.read_text()
+        .replace("width = 424", "width = 212")
+        .replace("height = 240", "height = 120")
+    )
     text += "\n[live]\n" + "\n".join(f"{k} = {v}" for k, v in live.items()) + "\n"
     path.write_text(text)
     return path
@@ -108,9 +119,13 @@ def listener(broker):
 
 
 def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, listener):
-    config = live_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                         live={"rate_hz": 2.0, "max_duration_s": 60, "grid_step_m": 0.05},
-                         schedule={"scan_at_start": False})  # fmt: skip
+    config = live_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        live={"rate_hz": 2.0, "max_duration_s": 60, "grid_step_m": 0.05},
+        schedule={"scan_at_start": False},
+    )
     agent = Daemon(config, tmp_path)
     try:
         agent.wait_log("agent started")
@@ -143,8 +158,10 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
         assert all(d.session_id == session for d in decoded)
         assert all(set(d.layers) == {"changed", "held"} for d in decoded)
         assert decoded[0].heightmap.step == pytest.approx(0.05)
-        times = [datetime.fromisoformat(d.meta["time"].replace("Z", "+00:00")).timestamp()
-                 for d in decoded]  # fmt: skip
+        times = [
+            datetime.fromisoformat(d.meta["time"].replace("Z", "+00:00")).timestamp()
+            for d in decoded
+        ]
         assert min(b - a for a, b in itertools.pairwise(times)) >= 2.0 - 0.02  # captures
         arrivals = [m.at for m in maps]
         assert min(b - a for a, b in itertools.pairwise(arrivals)) >= 2.0 - 0.1  # and sends
@@ -169,9 +186,13 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
 
 
 def test_a_full_scan_pre_empts_live_and_live_resumes(tmp_path: Path, broker, listener):
-    config = live_config(tmp_path / "agent.toml", broker.port, tmp_path,
-                         live={"rate_hz": 2.0, "grid_step_m": 0.05},
-                         schedule={"scan_at_start": False, "interval_s": 12})  # fmt: skip
+    config = live_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        live={"rate_hz": 2.0, "grid_step_m": 0.05},
+        schedule={"scan_at_start": False, "interval_s": 12},
+    )
     agent = Daemon(config, tmp_path)
     try:
         agent.wait_log("agent started")

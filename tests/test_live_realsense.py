@@ -26,23 +26,41 @@ def recorded(tmp_path_factory) -> tuple[RobotRig, list[list[np.ndarray]], Path]:
     frames = [[f.depth for f in rig.frames(t, i)] for i, t in enumerate(TIMES)]
     directory = tmp_path_factory.mktemp("live-recordings")
     for k, view in enumerate(rig.views):
-        write_recording(directory / f"{view.serial}.db3", view.serial,
-                        view.intrinsics.to_json(), [per_time[k] for per_time in frames],
-                        0.001, 30)  # fmt: skip
+        write_recording(
+            directory / f"{view.serial}.db3",
+            view.serial,
+            view.intrinsics.to_json(),
+            [per_time[k] for per_time in frames],
+            0.001,
+            30,
+        )
     return rig, frames, directory
 
 
 def playback_config(rig: RobotRig, directory: Path):
-    cameras = [{"serial": v.serial, "source": "playback",
-                "playback": str(directory / f"{v.serial}.db3"), "extrinsic": v.nominal.tolist(),
-                "width": 424, "height": 240, "timeout_s": 2.0, "spatial_filter": False,
-                "temporal_filter": True}  # configured, yet not used live: it smears a robot
-               for v in rig.views]  # fmt: skip
+    cameras = [
+        {
+            "serial": v.serial,
+            "source": "playback",
+            "playback": str(directory / f"{v.serial}.db3"),
+            "extrinsic": v.nominal.tolist(),
+            "width": 424,
+            "height": 240,
+            "timeout_s": 2.0,
+            "spatial_filter": False,
+            "temporal_filter": True,
+        }  # configured, yet not used live: it smears a robot
+        for v in rig.views
+    ]
     site = rig.robot.base.site
-    return parse_config({
-        "silo": {"id": "live-rs", "region": site.region.tolist(), "ceiling_z": site.ceiling_z},
-        "cameras": cameras, "live": {"decimation": 1},
-    }, "test")  # fmt: skip
+    return parse_config(
+        {
+            "silo": {"id": "live-rs", "region": site.region.tolist(), "ceiling_z": site.ceiling_z},
+            "cameras": cameras,
+            "live": {"decimation": 1},
+        },
+        "test",
+    )
 
 
 def test_playback_streams_every_frame_unblended_then_ends_with_a_clear_error(recorded):

@@ -18,8 +18,9 @@ REPLIES = "fuzz/replies"
 
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
-    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner,
-                                                                max_size=4),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
     max_leaves=10,
 )
 requests = st.one_of(
@@ -74,15 +75,19 @@ def ask(col, raw: bytes) -> dict:
     props.ResponseTopic = REPLIES
     props.CorrelationData = correlation
     col.publish(f"{BASE}/cmd/scan", raw, props)
-    col.wait_for(lambda ms: any(
-        m.topic == REPLIES and m.properties.CorrelationData == correlation for m in ms))
+    col.wait_for(
+        lambda ms: any(
+            m.topic == REPLIES and m.properties.CorrelationData == correlation for m in ms
+        )
+    )
     replies = [m for m in col.on(REPLIES) if m.properties.CorrelationData == correlation]
     assert len(replies) == 1
     return validate_json(replies[0].payload)
 
 
-@settings(max_examples=80, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @pytest.mark.slow
 @given(raw=requests)
 def test_fuzzed_requests_get_one_reply_each(agent, raw):

@@ -18,8 +18,7 @@ def render(template: str, payload: bytes) -> str:
     return jinja2.Environment().from_string(template).render(value_json=json.loads(payload))
 
 
-def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory,
-                                                     collector_factory):
+def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory, collector_factory):
     col = collector_factory(broker, ["homeassistant/#", f"{BASE}/#"])
     tel = telemetry_factory(broker, homeassistant={"enabled": True})
     msg = col.wait_topic(CONFIG)[0]
@@ -30,8 +29,12 @@ def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory,
     assert config["o"]["name"] == "silo-agent"
     cmps = config["cmps"]
     volume = cmps["volume"]
-    assert (volume["p"], volume["device_class"], volume["state_class"],
-            volume["unit_of_measurement"]) == ("sensor", "volume_storage", "measurement", "m³")
+    assert (
+        volume["p"],
+        volume["device_class"],
+        volume["state_class"],
+        volume["unit_of_measurement"],
+    ) == ("sensor", "volume_storage", "measurement", "m³")
     assert volume["state_topic"] == f"{BASE}/volume"
     assert cmps["mass"]["unit_of_measurement"] == "kg" and cmps["mass"]["device_class"] == "weight"
     assert {f"alarm_{t}" for t in ALARM_TYPES} <= set(cmps)
@@ -40,8 +43,14 @@ def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory,
 
     # the templates produce the right states from the payloads the agent really publishes
     tel.publish_result(summary())
-    tel.publish_alarm({"type": "collapse", "state": "raised", "severity": "critical",
-                       "scan_id": summary()["scan_id"]})
+    tel.publish_alarm(
+        {
+            "type": "collapse",
+            "state": "raised",
+            "severity": "critical",
+            "scan_id": summary()["scan_id"],
+        }
+    )
     vol = col.wait_topic(f"{BASE}/volume")[0].payload
     assert render(volume["value_template"], vol) == "12.345"
     assert render(cmps["mass"]["value_template"], vol) == "9506.0"  # mass_t 9.506 t, in kg
@@ -89,10 +98,35 @@ HA_STATE_CLASSES: dict[str | None, set[str | None]] = {
     None: {"measurement", "total", "total_increasing", None},
 }
 HA_BINARY_SENSOR_CLASSES = {
-    None, "battery", "battery_charging", "carbon_monoxide", "cold", "connectivity", "door",
-    "garage_door", "gas", "heat", "light", "lock", "moisture", "motion", "moving", "occupancy",
-    "opening", "plug", "power", "presence", "problem", "running", "safety", "smoke", "sound",
-    "tamper", "update", "vibration", "window",
+    None,
+    "battery",
+    "battery_charging",
+    "carbon_monoxide",
+    "cold",
+    "connectivity",
+    "door",
+    "garage_door",
+    "gas",
+    "heat",
+    "light",
+    "lock",
+    "moisture",
+    "motion",
+    "moving",
+    "occupancy",
+    "opening",
+    "plug",
+    "power",
+    "presence",
+    "problem",
+    "running",
+    "safety",
+    "smoke",
+    "sound",
+    "tamper",
+    "update",
+    "vibration",
+    "window",
 }
 
 
@@ -106,17 +140,20 @@ def ha_rule_violations(cmps: dict) -> list[str]:
                 bad.append(f"{key}: unit {unit!r} is not one of device class {dc!r}")
             if sc not in HA_STATE_CLASSES.get(dc, HA_STATE_CLASSES[None]):
                 bad.append(f"{key}: state class {sc!r} not allowed with device class {dc!r}")
-        elif c["p"] == "binary_sensor" and (dc not in HA_BINARY_SENSOR_CLASSES
-                                            or unit is not None or sc is not None):
+        elif c["p"] == "binary_sensor" and (
+            dc not in HA_BINARY_SENSOR_CLASSES or unit is not None or sc is not None
+        ):
             bad.append(f"{key}: binary_sensor with {dc!r}, {unit!r}, {sc!r}")
-        if "expire_after" in c and not (isinstance(c["expire_after"], int)
-                                        and c["expire_after"] > 0):  # cv.positive_int
+        if "expire_after" in c and not (
+            isinstance(c["expire_after"], int) and c["expire_after"] > 0
+        ):  # cv.positive_int
             bad.append(f"{key}: expire_after {c['expire_after']!r}")
     return bad
 
 
 def test_every_discovered_entity_passes_home_assistants_unit_and_class_rules(
-        broker, telemetry_factory, collector_factory):  # fmt: skip
+    broker, telemetry_factory, collector_factory
+):
     col = collector_factory(broker, [CONFIG])
     telemetry_factory(broker, homeassistant={"enabled": True}, expire_after_s=7800)
     cmps = json.loads(col.wait_topic(CONFIG)[0].payload)["cmps"]
@@ -124,40 +161,70 @@ def test_every_discovered_entity_passes_home_assistants_unit_and_class_rules(
     tonne = {"p": "sensor", "device_class": "weight", "unit_of_measurement": "t"}
     stamp = {"p": "sensor", "device_class": "timestamp", "state_class": "measurement"}
     assert len(ha_rule_violations({"mass": tonne, "last_scan": stamp})) == 2  # the table bites
-    readings = ("volume", "mass", "coverage", "level_min", "level_mean", "level_max", "valid",
-                "degraded")
+    readings = (
+        "volume",
+        "mass",
+        "coverage",
+        "level_min",
+        "level_mean",
+        "level_max",
+        "valid",
+        "degraded",
+    )
     assert {k: cmps[k].get("expire_after") for k in readings} == dict.fromkeys(readings, 7800)
 
 
 def test_invalid_or_stale_readings_do_not_show_as_a_normal_volume(
-        broker, telemetry_factory, collector_factory):  # fmt: skip
+    broker, telemetry_factory, collector_factory
+):
     """An invalid scan: volume, mass and levels render as HA's "None" (state unknown), the
     valid entity is off, and every reading carries the scan's identity and validity."""
     col = collector_factory(broker, [CONFIG, f"{BASE}/volume"])
     tel = telemetry_factory(broker, homeassistant={"enabled": True})
     cmps = json.loads(col.wait_topic(CONFIG)[0].payload)["cmps"]
-    bad = summary(f"{SILO}-20261122T030000Z", valid=False, degraded=True,
-                  invalid_reason="coverage 12 % below the minimum", coverage=0.12)
+    bad = summary(
+        f"{SILO}-20261122T030000Z",
+        valid=False,
+        degraded=True,
+        invalid_reason="coverage 12 % below the minimum",
+        coverage=0.12,
+    )
     tel.publish_result(summary())
     good_payload = col.wait_topic(f"{BASE}/volume")[0].payload
     tel.publish_result(bad)
     bad_payload = col.wait_topic(f"{BASE}/volume", 2)[1].payload
 
     def shown(payload: bytes) -> dict[str, str]:
-        return {k: render(cmps[k]["value_template"], payload)
-                for k in ("volume", "mass", "level_max", "coverage", "valid", "degraded",
-                          "last_scan")}  # fmt: skip
+        return {
+            k: render(cmps[k]["value_template"], payload)
+            for k in ("volume", "mass", "level_max", "coverage", "valid", "degraded", "last_scan")
+        }
 
-    assert shown(good_payload) == {"volume": "12.345", "mass": "9506.0", "level_max": "1.4",
-                                   "coverage": "87.0", "valid": "ON", "degraded": "OFF",
-                                   "last_scan": "2026-11-22T02:00:00.000Z"}  # fmt: skip
-    assert shown(bad_payload) == {"volume": "None", "mass": "None", "level_max": "None",
-                                  "coverage": "12.0", "valid": "OFF", "degraded": "ON",
-                                  "last_scan": "2026-11-22T02:00:00.000Z"}  # fmt: skip
+    assert shown(good_payload) == {
+        "volume": "12.345",
+        "mass": "9506.0",
+        "level_max": "1.4",
+        "coverage": "87.0",
+        "valid": "ON",
+        "degraded": "OFF",
+        "last_scan": "2026-11-22T02:00:00.000Z",
+    }
+    assert shown(bad_payload) == {
+        "volume": "None",
+        "mass": "None",
+        "level_max": "None",
+        "coverage": "12.0",
+        "valid": "OFF",
+        "degraded": "ON",
+        "last_scan": "2026-11-22T02:00:00.000Z",
+    }
     attributes = json.loads(render(cmps["volume"]["json_attributes_template"], bad_payload))
-    assert attributes == {"scan_id": f"{SILO}-20261122T030000Z",
-                          "captured_at": "2026-11-22T02:00:00.000Z", "valid": False,
-                          "degraded": True}  # fmt: skip
+    assert attributes == {
+        "scan_id": f"{SILO}-20261122T030000Z",
+        "captured_at": "2026-11-22T02:00:00.000Z",
+        "valid": False,
+        "degraded": True,
+    }
     assert cmps["volume"]["json_attributes_topic"] == f"{BASE}/volume"
 
 
@@ -171,12 +238,19 @@ def test_expiry_follows_the_schedule_one_missed_scan_tolerated():
 
 
 def test_every_alarm_state_is_retained_at_start_and_sent_again_when_ha_comes_online(
-        broker, telemetry_factory, collector_factory):  # fmt: skip
+    broker, telemetry_factory, collector_factory
+):
     topics = {f"{BASE}/alarm/{t}" for t in ALARM_TYPES}
     col = collector_factory(broker, [f"{BASE}/alarm/+"])
     tel = telemetry_factory(broker, homeassistant={"enabled": True}, start=False)
-    raised = {"type": "collapse", "state": "raised", "severity": "critical",
-              "scan_id": summary()["scan_id"], "message": "surface dropped", "depth_m": 0.4}
+    raised = {
+        "type": "collapse",
+        "state": "raised",
+        "severity": "critical",
+        "scan_id": summary()["scan_id"],
+        "message": "surface dropped",
+        "depth_m": 0.4,
+    }
     tel.restore_alarms({"collapse": raised})  # what the agent persisted before a restart
     tel.start()
     col.wait_for(lambda ms: {m.topic for m in ms} >= topics)
@@ -184,11 +258,13 @@ def test_every_alarm_state_is_retained_at_start_and_sent_again_when_ha_comes_onl
     fresh.wait_for(lambda ms: {m.topic for m in ms if m.retain} >= topics)
     states = {m.topic.rsplit("/", 1)[1]: validate_json(m.payload) for m in fresh.messages}
     assert {t: s["state"] for t, s in states.items()} == {
-        t: "raised" if t == "collapse" else "cleared" for t in ALARM_TYPES}
+        t: "raised" if t == "collapse" else "cleared" for t in ALARM_TYPES
+    }
     assert states["collapse"]["depth_m"] == 0.4
     for t in ALARM_TYPES:  # HA's binary_sensor template on each
-        on = render("{{ 'ON' if value_json.state == 'raised' else 'OFF' }}",
-                    json.dumps(states[t]).encode())
+        on = render(
+            "{{ 'ON' if value_json.state == 'raised' else 'OFF' }}", json.dumps(states[t]).encode()
+        )
         assert on == ("ON" if t == "collapse" else "OFF")
 
     col.client.publish("homeassistant/status", b"online", qos=1)
@@ -196,13 +272,21 @@ def test_every_alarm_state_is_retained_at_start_and_sent_again_when_ha_comes_onl
 
 
 def test_no_discovery_without_home_assistant_even_for_a_new_alarm_type(
-        broker, telemetry_factory, collector_factory):  # fmt: skip
+    broker, telemetry_factory, collector_factory
+):
     col = collector_factory(broker, ["homeassistant/#", f"{BASE}/#"])
     tel = telemetry_factory(broker)
-    tel.restore_alarms({"silo_door": {"type": "silo_door", "state": "raised",
-                                      "severity": "warning", "scan_id": None}})  # fmt: skip
-    tel.publish_alarm({"type": "hopper", "state": "raised", "severity": "warning",
-                       "scan_id": None})  # fmt: skip
+    tel.restore_alarms(
+        {
+            "silo_door": {
+                "type": "silo_door",
+                "state": "raised",
+                "severity": "warning",
+                "scan_id": None,
+            }
+        }
+    )
+    tel.publish_alarm({"type": "hopper", "state": "raised", "severity": "warning", "scan_id": None})
     col.wait_topic(f"{BASE}/alarm/hopper")
     col.wait_topic(f"{BASE}/alarm/silo_door")
     col.publish(f"{BASE}/cmd/scan", b"{}")  # a round trip through the agent, then look

@@ -49,16 +49,21 @@ def test_broker_killed_while_publishing(broker, telemetry_factory, collector_fac
     broker.start()
     assert done.wait(10)
     col.wait_for(
-        lambda ms: len({json.loads(m.payload)["msg_id"] for m in ms
-                        if m.topic == f"{BASE}/scan"}) >= n,
+        lambda ms: (
+            len({json.loads(m.payload)["msg_id"] for m in ms if m.topic == f"{BASE}/scan"}) >= n
+        ),
         timeout=30,
     )
     scans = _first_by_msg_id([m.payload for m in col.on(f"{BASE}/scan")])
     assert [s["scan_id"] for s in scans] == [f"{SILO}-{k:03d}" for k in range(n)]
     assert [s["seq"] for s in scans] == sorted(s["seq"] for s in scans)
     volumes = _first_by_msg_id([m.payload for m in col.on(f"{BASE}/volume")])
-    col.wait_for(lambda ms: json.loads(
-        [m for m in ms if m.topic == f"{BASE}/volume"][-1].payload)["scan_id"] == f"{SILO}-059")
+    col.wait_for(
+        lambda ms: (
+            json.loads([m for m in ms if m.topic == f"{BASE}/volume"][-1].payload)["scan_id"]
+            == f"{SILO}-059"
+        )
+    )
     assert [v["seq"] for v in volumes] == sorted(v["seq"] for v in volumes)
     end = time.monotonic() + 5
     while tel.outbox.size()[0] and time.monotonic() < end:
@@ -80,7 +85,7 @@ source = "sim"
 [mqtt]
 host = "127.0.0.1"
 port = {port}
-outbox_path = "{tmp_path / 'outbox.sqlite'}"
+outbox_path = "{tmp_path / "outbox.sqlite"}"
 reconnect_min_s = 0.1
 reconnect_max_s = 0.5
 keepalive_s = 5
@@ -92,7 +97,10 @@ def _cli(*args: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen(
         [sys.executable, "-m", "silo_agent.telemetry", *args],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        text=True,
     )
 
 
@@ -102,8 +110,17 @@ def test_publisher_sigkilled_with_pending_messages(tmp_path, collector_factory):
     cfg = _config(tmp_path, broker.port)
     result = tmp_path / "result.json"
     result.write_text(json.dumps(summary()))
-    proc = _cli("publish", "--config", str(cfg), "--result", str(result), "--repeat", "4",
-                "--timeout", "120")
+    proc = _cli(
+        "publish",
+        "--config",
+        str(cfg),
+        "--result",
+        str(result),
+        "--repeat",
+        "4",
+        "--timeout",
+        "120",
+    )
     queued = [json.loads(proc.stdout.readline()) for _ in range(8)]  # scan + volume, x4
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
@@ -135,8 +152,12 @@ def test_publisher_sigkilled_with_pending_messages(tmp_path, collector_factory):
         flush.wait()
         flush.stdout.close()
         flush.stderr.close()
-        col.wait_for(lambda ms: validate_json(
-            [m for m in ms if m.topic == f"{BASE}/status"][-1].payload)["state"] == "offline")
+        col.wait_for(
+            lambda ms: (
+                validate_json([m for m in ms if m.topic == f"{BASE}/status"][-1].payload)["state"]
+                == "offline"
+            )
+        )
     finally:
         if flush is not None and flush.poll() is None:
             flush.kill()

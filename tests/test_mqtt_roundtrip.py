@@ -27,11 +27,18 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     hm = realistic_heightmap()
     result = summary()
     tel.publish_result(result, hm)
-    tel.publish_alarm({
-        "type": "collapse", "state": "raised", "severity": "critical",
-        "scan_id": result["scan_id"], "message": "surface dropped",
-        "position": [0.4, -1.2], "area_m2": 0.35, "depth_m": 0.22,
-    })
+    tel.publish_alarm(
+        {
+            "type": "collapse",
+            "state": "raised",
+            "severity": "critical",
+            "scan_id": result["scan_id"],
+            "message": "surface dropped",
+            "position": [0.4, -1.2],
+            "area_m2": 0.35,
+            "depth_m": 0.22,
+        }
+    )
     tel.set_status(cameras={"cam-b": ("failed", "usb timeout")}, last_scan_id=result["scan_id"])
 
     scan = validate_json(col.wait_topic(f"{BASE}/scan")[0].payload)
@@ -42,7 +49,8 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     assert (volume["volume_m3"], volume["mass_t"], volume["level"]["max"]) == (12.345, 9.506, 1.4)
     assert volume["scan_id"] == result["scan_id"]
     assert volume_msg.properties.UserProperty == [
-        ("msg_id", volume["msg_id"]), ("seq", str(volume["seq"]))
+        ("msg_id", volume["msg_id"]),
+        ("seq", str(volume["seq"])),
     ]
 
     blob = col.wait_topic(f"{BASE}/heightmap")[0].payload
@@ -59,10 +67,14 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     assert event["position"] == [0.4, -1.2] and event["depth_m"] == 0.22
     assert current["state"] == "raised" and current["msg_id"] != event["msg_id"]
 
-    col.wait_for(lambda ms: any(
-        m.topic == f"{BASE}/status" and json.loads(m.payload)["last_scan_id"] == result["scan_id"]
-        and json.loads(m.payload)["cameras"][1]["state"] == "failed" for m in ms
-    ))
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/status"
+            and json.loads(m.payload)["last_scan_id"] == result["scan_id"]
+            and json.loads(m.payload)["cameras"][1]["state"] == "failed"
+            for m in ms
+        )
+    )
 
     # command with MQTT 5 response topic + correlation data
     props = Properties(PacketTypes.PUBLISH)
@@ -86,21 +98,33 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     tel.on_scan_request(busy)
     col.publish(f"{BASE}/cmd/scan", b'{"request_id": "r-2"}')
     refused = validate_json(col.wait_topic(f"{BASE}/cmd/scan/reply")[0].payload)
-    assert refused == {**refused, "request_id": "r-2", "accepted": False,
-                       "error": "a scan is already running"}
+    assert refused == {
+        **refused,
+        "request_id": "r-2",
+        "accepted": False,
+        "error": "a scan is already running",
+    }
 
-    seqs = [validate_json(m.payload)["seq"] for m in col.messages
-            if m.topic not in (f"{BASE}/heightmap", f"{BASE}/cmd/scan")]
+    seqs = [
+        validate_json(m.payload)["seq"]
+        for m in col.messages
+        if m.topic not in (f"{BASE}/heightmap", f"{BASE}/cmd/scan")
+    ]
     assert len(set(seqs)) == len(seqs)
 
     tel.stop()
-    col.wait_for(lambda ms: json.loads(
-        [m for m in ms if m.topic == f"{BASE}/status"][-1].payload)["state"] == "stopped")
+    col.wait_for(
+        lambda ms: (
+            json.loads([m for m in ms if m.topic == f"{BASE}/status"][-1].payload)["state"]
+            == "stopped"
+        )
+    )
     assert tel.outbox.path.exists()
 
 
-def test_late_joiners_get_the_retained_map_volume_and_status(broker, telemetry_factory,
-                                                             collector_factory):
+def test_late_joiners_get_the_retained_map_volume_and_status(
+    broker, telemetry_factory, collector_factory
+):
     tel = telemetry_factory(broker)
     hm = realistic_heightmap(rows=60, cols=80)
     tel.publish_result(summary(), hm)

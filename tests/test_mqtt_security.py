@@ -19,10 +19,15 @@ def test_tls_with_ca_and_encrypted_client_key(tmp_path, telemetry_factory, colle
     broker = Broker(tmp_path / "broker", tls=tls).start()
     try:
         (tmp_path / "keypass").write_text("k3y-pass\n")
-        tel = telemetry_factory(broker, tls={
-            "ca_file": tls.ca, "cert_file": tls.client_cert, "key_file": tls.client_key,
-            "key_password_file": tmp_path / "keypass",
-        })
+        tel = telemetry_factory(
+            broker,
+            tls={
+                "ca_file": tls.ca,
+                "cert_file": tls.client_cert,
+                "key_file": tls.client_key,
+                "key_password_file": tmp_path / "keypass",
+            },
+        )
         plain_key = dataclasses.replace(tls, client_key=tls.client_key.with_name("client.key"))
         col = collector_factory(broker, [f"{BASE}/#"], tls=plain_key)
         assert validate_json(col.wait_topic(f"{BASE}/status")[-1].payload)["state"] == "online"
@@ -40,8 +45,13 @@ def test_wrong_password_is_reported_and_retried_with_back_off(
     try:
         monkeypatch.setenv("SILO_TEST_PW", "wrong")
         with capture_logs() as logs:
-            tel = telemetry_factory(broker, username="agent", password_env="SILO_TEST_PW",
-                                    reconnect_min_s=0.1, reconnect_max_s=0.8)
+            tel = telemetry_factory(
+                broker,
+                username="agent",
+                password_env="SILO_TEST_PW",
+                reconnect_min_s=0.1,
+                reconnect_max_s=0.8,
+            )
             time.sleep(1.6)
             tel.stop()
         failures = [e for e in logs if e["event"] == "MQTT connection failed, retrying"]
@@ -55,8 +65,12 @@ def test_wrong_password_is_reported_and_retried_with_back_off(
         assert tel.outbox.path.exists()
 
         (tmp_path / "pw").write_text("right\n")
-        telemetry_factory(broker, username="agent", password_file=tmp_path / "pw",
-                          outbox_path=tmp_path / "outbox2.sqlite")
+        telemetry_factory(
+            broker,
+            username="agent",
+            password_file=tmp_path / "pw",
+            outbox_path=tmp_path / "outbox2.sqlite",
+        )
         col = collector_factory(broker, [f"{BASE}/status"], username="test", password="t")
         assert validate_json(col.wait_topic(f"{BASE}/status")[-1].payload)["state"] == "online"
     finally:
@@ -88,12 +102,18 @@ topic write {BASE}/heightmap
         assert tel.outbox.counter("rejected") == 1
         # still connected and publishing; the refusal shows on P/status
         tel.publish_result(summary(f"{SILO}-2"))
-        col.wait_for(lambda ms: any(
-            m.topic == f"{BASE}/volume" and json.loads(m.payload)["scan_id"] == f"{SILO}-2"
-            for m in ms))
-        col.wait_for(lambda ms: any(
-            m.topic == f"{BASE}/status" and json.loads(m.payload)["outbox"]["rejected"] >= 1
-            for m in ms))
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/volume" and json.loads(m.payload)["scan_id"] == f"{SILO}-2"
+                for m in ms
+            )
+        )
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/status" and json.loads(m.payload)["outbox"]["rejected"] >= 1
+                for m in ms
+            )
+        )
         assert not col.on(f"{BASE}/scan")
         assert tel._thread.is_alive()
     finally:

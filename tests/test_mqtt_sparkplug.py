@@ -33,20 +33,34 @@ def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
     assert metrics["bdSeq"].value == 0 and metrics["bdSeq"].datatype == ps.DataType.UINT64
     assert metrics["Node Control/Rebirth"].datatype == ps.DataType.BOOLEAN
     expected = {
-        "Inventory/Volume m3": ps.DataType.DOUBLE, "Inventory/Mass t": ps.DataType.DOUBLE,
-        "Inventory/Level Min m": ps.DataType.DOUBLE, "Inventory/Level Mean m": ps.DataType.DOUBLE,
-        "Inventory/Level Max m": ps.DataType.DOUBLE, "Inventory/Coverage": ps.DataType.DOUBLE,
-        "Scan/Time": ps.DataType.DATETIME, "Scan/Last Id": ps.DataType.STRING,
-        "Alarms/collapse": ps.DataType.BOOLEAN, "Alarms/level_high": ps.DataType.BOOLEAN,
-        "Cameras/cam-a/State": ps.DataType.STRING, "Cameras/cam-b/State": ps.DataType.STRING,
+        "Inventory/Volume m3": ps.DataType.DOUBLE,
+        "Inventory/Mass t": ps.DataType.DOUBLE,
+        "Inventory/Level Min m": ps.DataType.DOUBLE,
+        "Inventory/Level Mean m": ps.DataType.DOUBLE,
+        "Inventory/Level Max m": ps.DataType.DOUBLE,
+        "Inventory/Coverage": ps.DataType.DOUBLE,
+        "Scan/Time": ps.DataType.DATETIME,
+        "Scan/Last Id": ps.DataType.STRING,
+        "Alarms/collapse": ps.DataType.BOOLEAN,
+        "Alarms/level_high": ps.DataType.BOOLEAN,
+        "Cameras/cam-a/State": ps.DataType.STRING,
+        "Cameras/cam-b/State": ps.DataType.STRING,
     }
     assert {k: metrics[k].datatype for k in expected} == expected
     assert metrics["Inventory/Volume m3"].is_null  # nothing measured yet
     assert metrics["Cameras/cam-a/State"].value == "unknown"
 
     tel.publish_result(summary())
-    tel.publish_alarm({"type": "level_high", "state": "raised", "severity": "warning",
-                       "scan_id": summary()["scan_id"], "value": 1.4, "threshold": 1.3})
+    tel.publish_alarm(
+        {
+            "type": "level_high",
+            "state": "raised",
+            "severity": "warning",
+            "scan_id": summary()["scan_id"],
+            "value": 1.4,
+            "threshold": 1.3,
+        }
+    )
     col.wait_topic(NODE.format("NDATA"), 2)
     data = [ps.NData.decode(m.payload, birth=birth) for m in col.on(NODE.format("NDATA"))]
     assert [d.seq for d in data] == [1, 2]
@@ -59,9 +73,17 @@ def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
     assert metric_map(data[1])["Alarms/level_high"].value is True
 
     # rebirth on NCMD: a new NBIRTH (seq 0, same bdSeq) carrying the current values
-    ncmd = ps.NCmd(timestamp=int(time.time() * 1000), metrics=(
-        ps.Metric(timestamp=None, name="Node Control/Rebirth", datatype=ps.DataType.BOOLEAN,
-                  value=True),))
+    ncmd = ps.NCmd(
+        timestamp=int(time.time() * 1000),
+        metrics=(
+            ps.Metric(
+                timestamp=None,
+                name="Node Control/Rebirth",
+                datatype=ps.DataType.BOOLEAN,
+                value=True,
+            ),
+        ),
+    )
     col.publish(NODE.format("NCMD"), ncmd.encode(include_dtypes=True))
     col.wait_topic(NODE.format("NBIRTH"), 2)
     rebirth = metric_map(births(col)[1])
@@ -115,19 +137,28 @@ def test_waits_for_the_primary_host(broker, telemetry_factory, collector_factory
     time.sleep(1.0)
     assert not col.on(NODE.format("NBIRTH")) and not col.on(NODE.format("NDATA"))
     now = int(time.time() * 1000)
-    col.client.publish("spBv1.0/STATE/scada", json.dumps({"online": True, "timestamp": now}),
-                       qos=1, retain=True)
+    col.client.publish(
+        "spBv1.0/STATE/scada", json.dumps({"online": True, "timestamp": now}), qos=1, retain=True
+    )
     col.wait_topic(NODE.format("NBIRTH"))
     col.wait_topic(NODE.format("NDATA"))
     # host goes offline: NDEATH, new session, no birth until the host is back
-    col.client.publish("spBv1.0/STATE/scada",
-                       json.dumps({"online": False, "timestamp": now + 1}), qos=1, retain=True)
+    col.client.publish(
+        "spBv1.0/STATE/scada",
+        json.dumps({"online": False, "timestamp": now + 1}),
+        qos=1,
+        retain=True,
+    )
     death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[0].payload)
     assert death.bd_seq_metric.value == 0
     time.sleep(0.8)
     assert len(col.on(NODE.format("NBIRTH"))) == 1
-    col.client.publish("spBv1.0/STATE/scada",
-                       json.dumps({"online": True, "timestamp": now + 2}), qos=1, retain=True)
+    col.client.publish(
+        "spBv1.0/STATE/scada",
+        json.dumps({"online": True, "timestamp": now + 2}),
+        qos=1,
+        retain=True,
+    )
     col.wait_topic(NODE.format("NBIRTH"), 2)
     assert metric_map(births(col)[1])["bdSeq"].value == 1
     assert tel._thread.is_alive()

@@ -61,8 +61,13 @@ def test_8_by_6_m_at_2_cm_is_small_and_exact_to_half_a_millimetre():
 
 def test_header_says_where_cell_0_0_is_and_the_readme_decoder_works():
     heights = np.array([[1.0, 1.5, np.nan], [2.0, 2.25, 2.5]])
-    hm = HeightMap((10.0, 20.0), 0.5, heights, np.array([[1, 0, 0], [1, 1, 0]], bool),
-                   np.array([[1, 1, 0], [1, 1, 1]], float))
+    hm = HeightMap(
+        (10.0, 20.0),
+        0.5,
+        heights,
+        np.array([[1, 0, 0], [1, 1, 0]], bool),
+        np.array([[1, 1, 0], [1, 1, 1]], float),
+    )
     blob = encode_heightmap(hm, "scan-7")
     fields = HEADER.unpack_from(blob)
     assert fields[0] == b"SLHM" and fields[5:10] == (2, 3, 0.5, 10.0, 20.0)
@@ -71,11 +76,14 @@ def test_header_says_where_cell_0_0_is_and_the_readme_decoder_works():
     rows, cols = struct.unpack_from("<II", blob, 8)
     z0, unknown, nf, ns, nh = struct.unpack_from("<dHHHI", blob, 40)
     pos = 66 + nf + ns
-    codes = np.cumsum(np.frombuffer(zlib.decompress(blob[pos:pos + nh]), "<u2")
-                      .reshape(rows, cols), axis=1, dtype=np.uint16)
+    codes = np.cumsum(
+        np.frombuffer(zlib.decompress(blob[pos : pos + nh]), "<u2").reshape(rows, cols),
+        axis=1,
+        dtype=np.uint16,
+    )
     z = np.where(codes == unknown, np.nan, z0 + codes / 1000.0)
     np.testing.assert_allclose(z, heights, atol=5e-4)
-    assert blob[66:66 + nf] == b"silo" and blob[66 + nf:pos] == b"scan-7"
+    assert blob[66 : 66 + nf] == b"silo" and blob[66 + nf : pos] == b"scan-7"
 
 
 def test_corrupt_height_maps_are_refused():
@@ -120,8 +128,7 @@ def test_retained_latest_keeps_only_the_newest_pending_value(tmp_path):
     box.enqueue("p/volume", lambda e: b"v1", retain=True, latest=True)
     box.enqueue("p/scan", lambda e: b"s1")
     box.enqueue("p/volume", lambda e: b"v2", retain=True, latest=True)
-    assert [(r.topic, r.payload) for r in box.pending()] == [("p/scan", b"s1"),
-                                                             ("p/volume", b"v2")]
+    assert [(r.topic, r.payload) for r in box.pending()] == [("p/scan", b"s1"), ("p/volume", b"v2")]
 
 
 def test_bounds_drop_oldest_non_retained_first_and_count(tmp_path):
@@ -196,17 +203,20 @@ def test_drops_are_reported_on_status(tmp_path):
     # 12 scans + the newest volume (retained "latest") = 13 rows, bound 10: 3 oldest scans go
     status = tel.status().outbox
     assert (status.pending, status.dropped) == (10, 3)
-    scans = [json.loads(r.payload)["scan_id"] for r in tel.outbox.pending(limit=20)
-             if r.topic.endswith("/scan")]
+    scans = [
+        json.loads(r.payload)["scan_id"]
+        for r in tel.outbox.pending(limit=20)
+        if r.topic.endswith("/scan")
+    ]
     assert scans == [f"silo-t-{k}" for k in range(3, 12)]
     tel.outbox.close()
 
 
 def test_the_documented_numpy_decoder_decodes_a_published_map():
     doc = (SCHEMAS.parents[1] / "docs" / "mqtt.md").read_text()
-    section = doc[doc.index("## Height map"):]
-    code = section[section.index("```python") + len("```python"):]
-    code = code[:code.index("```")]
+    section = doc[doc.index("## Height map") :]
+    code = section[section.index("```python") + len("```python") :]
+    code = code[: code.index("```")]
     namespace: dict = {}
     exec(code, namespace)
     hm = realistic_heightmap(rows=40, cols=50)
@@ -226,8 +236,9 @@ def test_a_bad_result_queues_nothing_and_stale_sparkplug_rows_are_dropped(tmp_pa
 
     cfg = mqtt_config(Broker(tmp_path / "b"), tmp_path, sparkplug={"enabled": True})
     tel = Telemetry(cfg, "silo-t", ["cam-a"])
-    too_tall = HeightMap((0, 0), 1.0, np.array([[0.0, 70.0]]), np.ones((1, 2), bool),
-                         np.ones((1, 2)))
+    too_tall = HeightMap(
+        (0, 0), 1.0, np.array([[0.0, 70.0]]), np.ones((1, 2), bool), np.ones((1, 2))
+    )
     with pytest.raises(ValueError, match="span"):
         tel.publish_result(summary(), too_tall)
     assert tel.outbox.size() == (0, 0)

@@ -75,7 +75,9 @@ def test_config_fields_take_the_shared_choices() -> None:
     fields = config.ReconstructionConfig.model_fields, config.SimulationConfig.model_fields
     assert fields[0]["method"].annotation is choices.Method
     assert (fields[1]["grain"].annotation, fields[1]["layout"].annotation) == (
-        choices.Grain, choices.Layout)
+        choices.Grain,
+        choices.Layout,
+    )
 
 
 def test_exit_statuses_are_defined_only_in_exits() -> None:
@@ -85,6 +87,9 @@ def test_exit_statuses_are_defined_only_in_exits() -> None:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Assign):
                 names = [t.id for t in node.targets if isinstance(t, ast.Name)]
-                defined += [f"{path.relative_to(ROOT)}: {n}" for n in names
-                            if n.startswith("EX_") or n in status_names]
+                defined += [
+                    f"{path.relative_to(ROOT)}: {n}"
+                    for n in names
+                    if n.startswith("EX_") or n in status_names
+                ]
     assert defined and all(d.startswith("exits.py:") for d in defined), defined

@@ -26,7 +26,8 @@ def _replay(directory: Path, capsys: pytest.CaptureFixture) -> str:
 @pytest.mark.realsense
 @pytest.mark.parametrize("refine", [False, True], ids=["plain", "refine"])
 def test_cli_scan_replays_identical_and_keeps_the_published_shape(
-        tmp_path: Path, capsys: pytest.CaptureFixture, refine: bool) -> None:  # fmt: skip
+    tmp_path: Path, capsys: pytest.CaptureFixture, refine: bool
+) -> None:
     pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed")
     from tests.support.playback import grain_layer, playback_camera, playback_config
 
@@ -56,7 +57,8 @@ def test_cli_scan_replays_identical_and_keeps_the_published_shape(
 
 @pytest.mark.slow
 def test_daemon_scan_with_refine_replays_identical(
-        tmp_path: Path, broker, capsys: pytest.CaptureFixture) -> None:  # fmt: skip
+    tmp_path: Path, broker, capsys: pytest.CaptureFixture
+) -> None:
     config = write_config(tmp_path / "agent.toml", broker.port, tmp_path)
     config.write_text(config.read_text() + REFINE)
     agent = Daemon(config, tmp_path, "--scans", "1")
@@ -71,7 +73,8 @@ def test_daemon_scan_with_refine_replays_identical(
 
 
 def test_a_bad_config_snapshot_in_a_scan_is_one_line_naming_the_key(
-        scan_dir: Path, capsys: pytest.CaptureFixture) -> None:  # fmt: skip
+    scan_dir: Path, capsys: pytest.CaptureFixture
+) -> None:
     manifest = json.loads((scan_dir / "scan.json").read_text())
     manifest["config"] = {"calibration": {"refine": "sometimes"}}
     (scan_dir / "scan.json").write_text(json.dumps(manifest))

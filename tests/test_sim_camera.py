@@ -22,8 +22,10 @@ def wall(distance: float, tilt_deg: float = 0.0) -> Raycaster:
     along = np.array([np.cos(t), np.sin(t), 0.0]) * 100
     up = np.array([0.0, 0.0, 100.0])
     centre = np.array([0.0, distance, 0.0])
-    vertices = np.array([centre - along - up, centre + along - up, centre + along + up,
-                         centre - along + up], dtype=np.float32)
+    vertices = np.array(
+        [centre - along - up, centre + along - up, centre + along + up, centre - along + up],
+        dtype=np.float32,
+    )
     triangles = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
     return Raycaster(World((Mesh(vertices, triangles, GRAIN),)))
 
@@ -43,8 +45,7 @@ def errors(distance: float, frames: int, noise: NoiseModel) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("distance", "expected_mm"), [(1.0, 1.9), (2.0, 7.7), (4.0, 30.6)])
-def test_depth_rms_follows_z2_subpixel_over_f_baseline(distance: float,
-                                                       expected_mm: float) -> None:
+def test_depth_rms_follows_z2_subpixel_over_f_baseline(distance: float, expected_mm: float) -> None:
     noise = NoiseModel()
     formula = distance**2 * 0.08 / (FOCAL * 0.095)
     assert formula * 1000 == pytest.approx(expected_mm, abs=0.1)  # design.md's numbers
@@ -77,8 +78,9 @@ def test_depth_is_quantised_to_the_depth_unit_and_exact_without_noise() -> None:
 
 @pytest.mark.parametrize("distance", [1.0, 2.0, 4.0])
 def test_left_band_is_invalid_with_width_f_baseline_over_z(distance: float) -> None:
-    frame = render(wall(distance), POSE, INTRINSICS, NoiseModel(subpixel=0.0),
-                   np.random.default_rng(0))
+    frame = render(
+        wall(distance), POSE, INTRINSICS, NoiseModel(subpixel=0.0), np.random.default_rng(0)
+    )
     valid = (frame.depth > 0).mean(axis=0)  # per column
     width = FOCAL * 0.095 / distance
     assert valid[: int(width) - 1].max() == 0.0
@@ -94,16 +96,23 @@ def test_outside_the_depth_range_nothing_is_returned(distance: float) -> None:
 
 def test_grazing_surfaces_drop_out() -> None:
     facing = render(wall(2.0), POSE, INTRINSICS, NoiseModel(), np.random.default_rng(0))
-    grazing = render(wall(2.0, tilt_deg=86.0), POSE, INTRINSICS, NoiseModel(),
-                     np.random.default_rng(0))
+    grazing = render(
+        wall(2.0, tilt_deg=86.0), POSE, INTRINSICS, NoiseModel(), np.random.default_rng(0)
+    )
     hit_columns = slice(200, 650)  # where the tilted wall is within range
     assert (facing.depth[:, hit_columns] > 0).mean() > 0.95
     assert (grazing.depth[:, hit_columns] > 0).mean() < 0.3
 
 
 def test_points_deproject_onto_the_wall_in_the_optical_frame() -> None:
-    frame = render(wall(2.0), POSE, INTRINSICS, NoiseModel(subpixel=0.0),
-                   np.random.default_rng(0), grain_rgb=(200, 150, 100))
+    frame = render(
+        wall(2.0),
+        POSE,
+        INTRINSICS,
+        NoiseModel(subpixel=0.0),
+        np.random.default_rng(0),
+        grain_rgb=(200, 150, 100),
+    )
     points, colors = frame.points()
     assert points.dtype == np.float32 and len(points) > 0.9 * 848 * 480
     assert np.abs(points[:, 2] - 2.0).max() <= 0.0005 + 1e-6  # +z forward

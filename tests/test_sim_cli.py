@@ -17,11 +17,27 @@ from silo_agent.sim import SCENES, make_scene, simulate, view_pose
 DEMO = Path(__file__).resolve().parent.parent / "config" / "demo.toml"
 
 
-def test_simulate_cli_writes_a_readable_scan_with_truth(tmp_path: Path,
-                                                        capsys: pytest.CaptureFixture) -> None:
+def test_simulate_cli_writes_a_readable_scan_with_truth(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     out = tmp_path / "scan"
-    argv = ["simulate", "--scene", "ridge", "--views", "A1,A5", "--out", str(out), "--seed", "2",
-            "--calib-error", "0.1,0.003", "--grid-step", "0.05", "--grain", "corn"]
+    argv = [
+        "simulate",
+        "--scene",
+        "ridge",
+        "--views",
+        "A1,A5",
+        "--out",
+        str(out),
+        "--seed",
+        "2",
+        "--calib-error",
+        "0.1,0.003",
+        "--grid-step",
+        "0.05",
+        "--grain",
+        "corn",
+    ]
     assert main(argv) == 0
     assert "truth" in capsys.readouterr().out
     scan = read_scan(out)
@@ -46,8 +62,9 @@ def test_simulate_offers_every_scene_of_the_library() -> None:
         assert args.scene == name
 
 
-@pytest.mark.parametrize("flag", [["--views", "A1,A9"], ["--calib-error", "0.5"],
-                                  ["--scene", "dome"]])
+@pytest.mark.parametrize(
+    "flag", [["--views", "A1,A9"], ["--calib-error", "0.5"], ["--scene", "dome"]]
+)
 def test_simulate_cli_rejects_bad_arguments(tmp_path: Path, flag: list[str]) -> None:
     argv = ["simulate", "--scene", "cone", "--views", "A1", "--out", str(tmp_path / "x"), *flag]
     with pytest.raises(SystemExit) as exc:
@@ -73,9 +90,11 @@ def test_demo_config_is_valid_and_captures_the_cone_from_four_sides() -> None:
 
 
 def _config(camera: dict, **simulation: object) -> dict:
-    return {"silo": {"id": "t", "region": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
-            "cameras": [{"serial": "cam", "source": "sim", **camera}],
-            "simulation": {"scene": "cone", **simulation}}
+    return {
+        "silo": {"id": "t", "region": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
+        "cameras": [{"serial": "cam", "source": "sim", **camera}],
+        "simulation": {"scene": "cone", **simulation},
+    }
 
 
 def test_sim_camera_renders_from_a_configured_extrinsic_and_reports_it() -> None:
@@ -100,10 +119,20 @@ def test_sim_camera_without_a_pose_is_a_capture_failure_not_a_crash() -> None:
     assert failure.serial == "cam" and "view" in failure.error
 
 
-def test_a_layout_that_buries_the_cameras_is_refused(tmp_path: Path,
-                                                     capsys: pytest.CaptureFixture) -> None:
-    argv = ["simulate", "--scene", "full", "--views", "A1", "--layout", "paper",
-            "--out", str(tmp_path / "s")]
+def test_a_layout_that_buries_the_cameras_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    argv = [
+        "simulate",
+        "--scene",
+        "full",
+        "--views",
+        "A1",
+        "--layout",
+        "paper",
+        "--out",
+        str(tmp_path / "s"),
+    ]
     assert main(argv) == 2
     assert "buried" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()

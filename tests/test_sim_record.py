@@ -38,7 +38,8 @@ def test_recording_plays_back_the_rendered_frames(tmp_path: Path) -> None:
     want = view.intrinsics
     assert (intr.width, intr.height) == (848, 480)
     assert [intr.fx, intr.fy, intr.ppx, intr.ppy] == pytest.approx(
-        [want.fx, want.fy, want.ppx, want.ppy], rel=1e-6)
+        [want.fx, want.fy, want.ppx, want.ppy], rel=1e-6
+    )
     assert len(depth) == 3 and len(color) == 3
     for got, frame in zip(depth, rendered, strict=True):
         np.testing.assert_array_equal(got, frame.depth)
@@ -48,16 +49,41 @@ def test_recording_plays_back_the_rendered_frames(tmp_path: Path) -> None:
 
 def test_simulate_record_plays_through_the_playback_camera(tmp_path: Path) -> None:
     out, recordings = tmp_path / "scan", tmp_path / "rec"
-    argv = ["simulate", "--scene", "cone", "--views", "A1", "--out", str(out), "--seed", "3",
-            "--calib-error", "2,0.01", "--record", str(recordings), "--record-frames", "4"]
+    argv = [
+        "simulate",
+        "--scene",
+        "cone",
+        "--views",
+        "A1",
+        "--out",
+        str(out),
+        "--seed",
+        "3",
+        "--calib-error",
+        "2,0.01",
+        "--record",
+        str(recordings),
+        "--record-frames",
+        "4",
+    ]
     assert main(argv) == 0
     (camera,) = read_scan(out).cameras
-    config = parse_config({
-        "silo": {"id": "t", "region": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
-        "cameras": [{"serial": camera.serial, "source": "playback",
-                     "playback": str(recordings / f"{camera.serial}.db3"),
-                     "extrinsic": camera.extrinsic.tolist(), "warmup_frames": 1, "frames": 3}],
-    }, "test")
+    config = parse_config(
+        {
+            "silo": {"id": "t", "region": [[-2, -2], [2, -2], [2, 2], [-2, 2]]},
+            "cameras": [
+                {
+                    "serial": camera.serial,
+                    "source": "playback",
+                    "playback": str(recordings / f"{camera.serial}.db3"),
+                    "extrinsic": camera.extrinsic.tolist(),
+                    "warmup_frames": 1,
+                    "frames": 3,
+                }
+            ],
+        },
+        "test",
+    )
     result = capture_all(config)
     assert result.failures == []
     (cloud,) = result.clouds
@@ -77,5 +103,18 @@ def test_simulate_record_plays_through_the_playback_camera(tmp_path: Path) -> No
 
 def test_record_frames_must_be_positive(tmp_path: Path) -> None:
     with pytest.raises(SystemExit):
-        main(["simulate", "--scene", "cone", "--views", "A1", "--out", str(tmp_path / "s"),
-              "--record", str(tmp_path / "r"), "--record-frames", "0"])
+        main(
+            [
+                "simulate",
+                "--scene",
+                "cone",
+                "--views",
+                "A1",
+                "--out",
+                str(tmp_path / "s"),
+                "--record",
+                str(tmp_path / "r"),
+                "--record-frames",
+                "0",
+            ]
+        )

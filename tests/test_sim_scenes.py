@@ -61,13 +61,17 @@ def test_flat_is_the_crater_bay_before_the_funnel_opened() -> None:
     flat, crater = make_scene("flat", "wheat"), make_scene("crater", "wheat")
     assert flat.volume_m3 == pytest.approx(1.2 * 36.0, rel=1e-12)
     assert numeric_volume(flat.height, flat.site.region, 0.0, STEP) == pytest.approx(
-        flat.volume_m3, rel=1e-6)
+        flat.volume_m3, rel=1e-6
+    )
     x, y = np.meshgrid(np.linspace(-2.9, 2.9, 30), np.linspace(-2.9, 2.9, 30))
     far = np.hypot(x - 0.4, y + 0.3) > crater.params["radius"]  # outside the funnel: the same
     assert np.array_equal(flat.height(x, y)[far], crater.height(x, y)[far])
     assert np.array_equal(flat.site.region, crater.site.region)
     assert (flat.layout, flat.wall_half_m, flat.wall_camera_z) == (
-        crater.layout, crater.wall_half_m, crater.wall_camera_z)
+        crater.layout,
+        crater.wall_half_m,
+        crater.wall_camera_z,
+    )
 
 
 def test_full_bay_is_a_slab_plus_the_filling_cone_with_clutter_above_the_crop() -> None:
@@ -102,8 +106,10 @@ def test_max_of_two_overlapping_cones_matches_the_semi_analytic_union() -> None:
     assert _cap(radius, slope, 0.0) == pytest.approx(cone / 2, rel=1e-8)  # the cap formula
 
     def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return np.maximum(cone_height(x, y, (-distance / 2, 0.0), radius, slope),
-                          cone_height(x, y, (distance / 2, 0.0), radius, slope))
+        return np.maximum(
+            cone_height(x, y, (-distance / 2, 0.0), radius, slope),
+            cone_height(x, y, (distance / 2, 0.0), radius, slope),
+        )
 
     union = 2 * cone - 2 * _cap(radius, slope, distance / 2)
     assert numeric_volume(height, square(1.7), 0.0, 0.002) == pytest.approx(union, rel=1e-6)
@@ -114,7 +120,8 @@ def test_piles_truth_splits_the_total_between_the_piles() -> None:
     cones = scene.params["cones"]
     assert len(scene.piles) == len(cones) >= 3
     assert scene.volume_m3 == pytest.approx(
-        numeric_volume(scene.height, scene.site.region, 0.0, STEP), rel=1e-6)
+        numeric_volume(scene.height, scene.site.region, 0.0, STEP), rel=1e-6
+    )
     assert sum(p.volume_m3 for p in scene.piles) == pytest.approx(scene.volume_m3, rel=1e-9)
     slope = GRAINS["wheat"].slope
     alone = [np.pi * r**2 * slope * r / 3 for _, r in cones]

@@ -57,15 +57,20 @@ def message(topic: str, payload: bytes) -> mqtt.MQTTMessage:
 
 
 def test_commands_answer_and_route_without_a_connection(tmp_path: Path) -> None:
-    cfg = MqttConfig.model_validate({
-        "outbox_path": tmp_path / "outbox.sqlite",
-        "homeassistant": {"enabled": True},
-        "sparkplug": {"enabled": True, "primary_host_id": "scada"},
-    })
+    cfg = MqttConfig.model_validate(
+        {
+            "outbox_path": tmp_path / "outbox.sqlite",
+            "homeassistant": {"enabled": True},
+            "sparkplug": {"enabled": True, "primary_host_id": "scada"},
+        }
+    )
     outbox = Outbox(cfg.outbox_path)
     events: list[object] = []
     commands = Commands(
-        cfg, BASE, sparkplug.Topics("silos", SILO), outbox,
+        cfg,
+        BASE,
+        sparkplug.Topics("silos", SILO),
+        outbox,
         SessionCallbacks(
             homeassistant_online=lambda: events.append("ha online"),
             rebirth_requested=lambda: events.append("rebirth"),

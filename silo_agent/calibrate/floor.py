@@ -21,8 +21,9 @@ FLOOR_OFF_SIGMAS = 2.0  # ... or, further away, this many times one point's nois
 ICP_SIGMA_M, ICP_SIGMA_PER_M2 = 0.002, 0.002  # point noise model: 2 mm + 2 mm x depth²
 
 
-def fit_plane(points: np.ndarray, weights: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def fit_plane(
+    points: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(Weighted) least-squares plane: (unit normal pointing up, weighted centroid)."""
     w = np.ones(len(points)) if weights is None else weights
     centroid = (w[:, None] * points).sum(axis=0) / w.sum()

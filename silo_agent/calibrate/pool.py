@@ -36,12 +36,15 @@ def pixel_means(
     u = np.rint(cam[:, 0] / cam[:, 2] * intrinsics["fx"] + intrinsics["ppx"]).astype(np.int64)
     v = np.rint(cam[:, 1] / cam[:, 2] * intrinsics["fy"] + intrinsics["ppy"]).astype(np.int64)
     u -= u.min()
-    _, inverse, count = np.unique((v - v.min()) * (u.max() + 1) + u, return_inverse=True,
-                                  return_counts=True)  # fmt: skip
+    _, inverse, count = np.unique(
+        (v - v.min()) * (u.max() + 1) + u, return_inverse=True, return_counts=True
+    )
 
     def mean(values: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.bincount(inverse, values[:, k])
-                                for k in range(values.shape[1])]) / count[:, None]  # fmt: skip
+        return (
+            np.column_stack([np.bincount(inverse, values[:, k]) for k in range(values.shape[1])])
+            / count[:, None]
+        )
 
     averaged = mean(cam).astype(points.dtype)
     if colors is None:

@@ -100,11 +100,16 @@ def _small_motion(omega: np.ndarray, tau: np.ndarray, pivot: np.ndarray) -> np.n
     return about(rotation, pivot, tau)
 
 
-def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], site: Site,
-             settings: CalibrationConfig, prior_deg: float, prior_m: float,
-             leveled: frozenset[str] = frozenset(),
-             spacings: Sequence[SpacingConfig] = (),
-             ) -> tuple[dict[str, np.ndarray], list[PairRegistration]]:  # fmt: skip
+def register(
+    cameras: Sequence[CameraCloud],
+    poses: Mapping[str, np.ndarray],
+    site: Site,
+    settings: CalibrationConfig,
+    prior_deg: float,
+    prior_m: float,
+    leveled: frozenset[str] = frozenset(),
+    spacings: Sequence[SpacingConfig] = (),
+) -> tuple[dict[str, np.ndarray], list[PairRegistration]]:
     """Relative registration of all cameras at once: joint point-to-plane ICP over every
     overlapping pair (each pair's correspondences, both ways), a pose graph solved as one
     least-squares problem per iteration, with a Gaussian prior of `prior_deg` / `prior_m` on
@@ -134,8 +139,9 @@ def register(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray], si
     pair_list = [(i, j) for i in range(n) for j in range(i + 1, n)]
     overlap = {p: 0.0 for p in pair_list}
     rmse = {p: 0.0 for p in pair_list}
-    prior = np.tile(np.r_[np.full(3, 1 / np.radians(prior_deg) ** 2),
-                          np.full(3, 1 / prior_m**2)], n)  # fmt: skip
+    prior = np.tile(
+        np.r_[np.full(3, 1 / np.radians(prior_deg) ** 2), np.full(3, 1 / prior_m**2)], n
+    )
     for k, serial in enumerate(serials):
         if serial in leveled:
             prior[[6 * k, 6 * k + 1, 6 * k + 5]] = LOCKED_PRECISION

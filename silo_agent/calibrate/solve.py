@@ -48,14 +48,18 @@ class CameraCalibration:
         degrees, metres = self.correction
         rotate, translate = self.euler()
         return {
-            "serial": self.serial, "extrinsic": self.after.tolist(),
-            "rotate_deg": list(rotate), "translate_m": list(translate),
+            "serial": self.serial,
+            "extrinsic": self.after.tolist(),
+            "rotate_deg": list(rotate),
+            "translate_m": list(translate),
             "previous_extrinsic": self.before.tolist(),
-            "correction_deg": degrees, "correction_m": metres, "leveled_by": self.leveled_by,
+            "correction_deg": degrees,
+            "correction_m": metres,
+            "leveled_by": self.leveled_by,
             "floor_points": self.floor_points,
             "gravity_angle_before_deg": self.gravity_angle_before_deg,
             "gravity_angle_after_deg": self.gravity_angle_after_deg,
-        }  # fmt: skip
+        }
 
 
 @dataclass(frozen=True)
@@ -71,10 +75,16 @@ class SpacingCheck:
     after_m: float
 
     def to_json(self) -> dict[str, Any]:
-        return {"a": self.a, "b": self.b, "measured_m": self.measured_m, "sigma_m": self.sigma_m,
-                "before_m": self.before_m, "after_m": self.after_m,
-                "error_before_m": self.before_m - self.measured_m,
-                "error_after_m": self.after_m - self.measured_m}  # fmt: skip
+        return {
+            "a": self.a,
+            "b": self.b,
+            "measured_m": self.measured_m,
+            "sigma_m": self.sigma_m,
+            "before_m": self.before_m,
+            "after_m": self.after_m,
+            "error_before_m": self.before_m - self.measured_m,
+            "error_after_m": self.after_m - self.measured_m,
+        }
 
 
 @dataclass
@@ -95,12 +105,15 @@ class Calibration:
             "cameras": [c.to_json() for c in self.cameras],
             "pairs": [p.to_json() for p in self.pairs],
             "registration_residual_m": {
-                k: {"before": _median(self.residual_before, k),
-                    "after": _median(self.residual_after, k)} for k in keys
+                k: {
+                    "before": _median(self.residual_before, k),
+                    "after": _median(self.residual_after, k),
+                }
+                for k in keys
             },
             "spacing": [s.to_json() for s in self.spacings],
             "notes": self.notes,
-        }  # fmt: skip
+        }
 
     def describe(self) -> str:
         lines = ["camera            moved (deg, mm)  leveled   new rotate_deg / translate_m"]
@@ -116,8 +129,9 @@ class Calibration:
                 lines.append(" " * 18 + "  ".join(f"{v:+.6f}" for v in row))
         lines.append("pair                    residual before -> after (median, MAD, cells; mm)")
         for k in sorted(set(self.residual_before) | set(self.residual_after)):
-            lines.append(f"{k:<23} {_fmt(self.residual_before.get(k))} -> "
-                         f"{_fmt(self.residual_after.get(k))}")  # fmt: skip
+            lines.append(
+                f"{k:<23} {_fmt(self.residual_before.get(k))} -> {_fmt(self.residual_after.get(k))}"
+            )
         for p in self.pairs:
             state = "used" if p.used else "not used"
             lines.append(
@@ -147,11 +161,14 @@ def _fmt(r: PairResidual | None) -> str:
     return f"{r.median_m * 1000:+6.1f} ±{r.mad_m * 1000:4.1f} ({r.cells:5d})"
 
 
-def with_extrinsics(cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray]
-                    ) -> list[CameraCloud]:  # fmt: skip
+def with_extrinsics(
+    cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray]
+) -> list[CameraCloud]:
     """The clouds with their extrinsics replaced (cameras missing from `poses` unchanged)."""
-    return [replace(c, extrinsic=np.asarray(poses.get(c.serial, c.extrinsic), dtype=float))
-            for c in cameras]  # fmt: skip
+    return [
+        replace(c, extrinsic=np.asarray(poses.get(c.serial, c.extrinsic), dtype=float))
+        for c in cameras
+    ]
 
 
 def scan_residuals(
@@ -170,9 +187,14 @@ def scan_residuals(
 
 
 def calibrate(
-    scan: Scan, settings: CalibrationConfig, *, floor: bool, site: Site | None = None,
-    start: Mapping[str, np.ndarray] | None = None, grid_step: float = 0.02,
-) -> Calibration:  # fmt: skip
+    scan: Scan,
+    settings: CalibrationConfig,
+    *,
+    floor: bool,
+    site: Site | None = None,
+    start: Mapping[str, np.ndarray] | None = None,
+    grid_step: float = 0.02,
+) -> Calibration:
     """Calibrate the scan's cameras from `start` (default: the scan's extrinsics).
 
     `floor`: the floor plane z = floor_z is visible around the grain (empty floor, or a pile on
@@ -184,8 +206,9 @@ def calibrate(
     cameras = scan.cameras
     if len(cameras) == 0:
         raise CalibrationError("the scan has no cameras")
-    configured = {c.serial: np.asarray((start or {}).get(c.serial, c.extrinsic), dtype=float)
-                  for c in cameras}  # fmt: skip
+    configured = {
+        c.serial: np.asarray((start or {}).get(c.serial, c.extrinsic), dtype=float) for c in cameras
+    }
     unknown = sorted({s for sp in settings.spacing for s in (sp.a, sp.b) if s not in configured})
     if unknown:
         raise CalibrationError(
@@ -290,19 +313,28 @@ def calibrate(
     angles_before, angles_after = gravity_angles(before_clouds), gravity_angles(after_clouds)
     return Calibration(
         cameras=[
-            CameraCalibration(c.serial, configured[c.serial], poses[c.serial], leveled[c.serial],
-                              counts[c.serial], angles_before.get(c.serial),
-                              angles_after.get(c.serial))
+            CameraCalibration(
+                c.serial,
+                configured[c.serial],
+                poses[c.serial],
+                leveled[c.serial],
+                counts[c.serial],
+                angles_before.get(c.serial),
+                angles_after.get(c.serial),
+            )
             for c in cameras
         ],
         pairs=pairs,
         residual_before=scan_residuals(before_clouds, site, grid_step, settings),
         residual_after=scan_residuals(after_clouds, site, grid_step, settings),
         notes=notes,
-        spacings=[SpacingCheck(sp.a, sp.b, sp.distance_m, sp.sigma_m,
-                               _spacing(configured, sp), _spacing(poses, sp))
-                  for sp in settings.spacing],
-    )  # fmt: skip
+        spacings=[
+            SpacingCheck(
+                sp.a, sp.b, sp.distance_m, sp.sigma_m, _spacing(configured, sp), _spacing(poses, sp)
+            )
+            for sp in settings.spacing
+        ],
+    )
 
 
 def _spacing(poses: Mapping[str, np.ndarray], spacing: SpacingConfig) -> float:
@@ -324,8 +356,9 @@ def _rigid_fit(moved: Sequence[np.ndarray], reference: Sequence[np.ndarray]) -> 
     return out
 
 
-def refine(scan: Scan, settings: CalibrationConfig, site: Site | None = None
-           ) -> tuple[Scan, list[str]]:  # fmt: skip
+def refine(
+    scan: Scan, settings: CalibrationConfig, site: Site | None = None
+) -> tuple[Scan, list[str]]:
     """Per-scan refinement (`calibration.refine`): a bounded relative registration on the
     overlaps, the rig kept where its extrinsics put it on average. Returns the scan unchanged,
     with a note, when a camera would move more than `refine_max_deg` / `refine_max_m`."""

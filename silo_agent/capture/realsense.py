@@ -217,8 +217,11 @@ class RealSenseCamera:
             except _DeviceFault as exc:
                 log.warning(
                     "capture failed, resetting camera",
-                    camera=self.serial, error=str(exc), attempt=attempt, of=attempts,
-                )  # fmt: skip
+                    camera=self.serial,
+                    error=str(exc),
+                    attempt=attempt,
+                    of=attempts,
+                )
                 self._reset()
         try:
             return self._attempt()
@@ -491,8 +494,9 @@ class RealSenseCamera:
             time.sleep(_POLL_S)
         log.warning(
             "camera did not re-enumerate after reset",
-            camera=self.serial, waited_s=self._camera.reset_wait_s,
-        )  # fmt: skip
+            camera=self.serial,
+            waited_s=self._camera.reset_wait_s,
+        )
 
 
 def _drain(pipe: rs.pipeline, playback: rs.playback) -> None:

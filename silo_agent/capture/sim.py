@@ -54,15 +54,22 @@ class SimCamera:
         # the pose error stays: it is the camera's, not the scan's
         error = (sim.calib_error_deg, sim.calib_error_m)
         key = camera.view or camera.serial
-        self._view = plan_view(key, camera.serial, nominal, sim.seed, error, camera.width,
-                               camera.height)
+        self._view = plan_view(
+            key, camera.serial, nominal, sim.seed, error, camera.width, camera.height
+        )
         if camera.view is not None and camera.extrinsic_matrix() is not None:
             # the camera hangs at its view (off by calib_error); the configured extrinsic is
             # only what the config believes, e.g. after `silo-agent calibrate --write`
             placed = _rig(sim.sequence[0], sim.grain) if sim.sequence else rig
-            mounted = plan_view(key, camera.serial,
-                                view_pose(placed.scene, camera.view, sim.layout),
-                                sim.seed, error, camera.width, camera.height)
+            mounted = plan_view(
+                key,
+                camera.serial,
+                view_pose(placed.scene, camera.view, sim.layout),
+                sim.seed,
+                error,
+                camera.width,
+                camera.height,
+            )
             self._view = replace(self._view, true=mounted.true)
 
     def capture(self) -> CameraCloud:

@@ -21,8 +21,15 @@ def accelerometer(view: SimView) -> list[float]:
     return (GRAVITY_M_S2 * view.true[:3, :3].T @ np.array([0.0, 0.0, 1.0])).tolist()
 
 
-def record_views(rig: SimRig, views: list[SimView], seed: int, directory: Path,
-                 frames: int, color: bool = False, fps: int = 30) -> list[Path]:
+def record_views(
+    rig: SimRig,
+    views: list[SimView],
+    seed: int,
+    directory: Path,
+    frames: int,
+    color: bool = False,
+    fps: int = 30,
+) -> list[Path]:
     """One `<serial>.db3` per camera with `frames` depth frames (and colour, accelerometer)."""
     paths = []
     for view in views:
@@ -30,8 +37,14 @@ def record_views(rig: SimRig, views: list[SimView], seed: int, directory: Path,
         colors = [f.color for f in rendered if f.color is not None] if color else None
         path = Path(directory) / f"{view.serial}.db3"
         write_recording(
-            path, view.serial, view.intrinsics.to_json(), [f.depth for f in rendered],
-            rig.noise.depth_unit_m, fps, color_frames=colors, accel=accelerometer(view),
+            path,
+            view.serial,
+            view.intrinsics.to_json(),
+            [f.depth for f in rendered],
+            rig.noise.depth_unit_m,
+            fps,
+            color_frames=colors,
+            accel=accelerometer(view),
         )
         paths.append(path)
     return paths

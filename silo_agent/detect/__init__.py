@@ -43,8 +43,14 @@ class Robot:
     camera: str
 
     def to_json(self) -> dict[str, Any]:
-        return {"x": self.x, "y": self.y, "z": self.z, "radius_m": self.radius_m,
-                "confidence": self.confidence, "camera": self.camera}  # fmt: skip
+        return {
+            "x": self.x,
+            "y": self.y,
+            "z": self.z,
+            "radius_m": self.radius_m,
+            "confidence": self.confidence,
+            "camera": self.camera,
+        }
 
     @property
     def disc(self) -> tuple[float, float, float]:

@@ -119,8 +119,9 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
     return {(int(k // n), int(k % n)): float(v) for k, v in zip(unique, best, strict=True)}
 
 
-def _basin_peaks(values: np.ndarray, labels: np.ndarray, count: int) -> tuple[np.ndarray,
-                                                                              np.ndarray]:
+def _basin_peaks(
+    values: np.ndarray, labels: np.ndarray, count: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Each basin's (1..count) highest value and the (row, col) of that cell.
 
     What `ndimage.maximum` and `ndimage.maximum_position` return, done as they do it (sort all
@@ -208,8 +209,10 @@ class Surface:
         weight = np.maximum(self.columns[cells], 0.0)
         total = float(np.sum(weight))
         if total > 0:
-            centroid = (float(np.sum(weight * self.xs[cells]) / total),
-                        float(np.sum(weight * self.ys[cells]) / total))  # fmt: skip
+            centroid = (
+                float(np.sum(weight * self.xs[cells]) / total),
+                float(np.sum(weight * self.ys[cells]) / total),
+            )
         else:
             centroid = (float(np.mean(self.xs[cells])), float(np.mean(self.ys[cells])))
         top = int(np.argmax(np.where(cells, np.nan_to_num(self.surface, nan=-np.inf), -np.inf)))
@@ -236,9 +239,11 @@ def detect_piles(surface: Surface, settings: DetectionConfig) -> list[Pile]:
     labels = _ascent_basins(smooth, domain)
     coarse = surface.coarse
     labels = _merge_low_peaks(
-        labels, coarse, settings.min_prominence_m,
+        labels,
+        coarse,
+        settings.min_prominence_m,
         settings.min_separation_m / surface.heightmap.step,
-    )  # fmt: skip
+    )
     piles = []
     for k in np.unique(labels[labels > 0]):
         mine = labels == k

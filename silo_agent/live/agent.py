@@ -24,8 +24,13 @@ log = structlog.get_logger(__name__)
 
 
 class LiveControl:
-    def __init__(self, config: Config, telemetry: Telemetry, wake: threading.Event,
-                 last_map: Callable[[], HeightMap | None] = lambda: None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        config: Config,
+        telemetry: Telemetry,
+        wake: threading.Event,
+        last_map: Callable[[], HeightMap | None] = lambda: None,
+    ) -> None:
         """`last_map` gives the last full scan's height map: cells a session has not seen yet
         start from it."""
         self.config = config
@@ -50,8 +55,7 @@ class LiveControl:
         """MQTT thread: check the request and leave it for `tend`; the session id."""
         request = command.request
         with self._lock:
-            active = self._start is not None or (self.session is not None
-                                                 and self.session.active)  # fmt: skip
+            active = self._start is not None or (self.session is not None and self.session.active)
             if not request.on:
                 if not active:
                     raise CommandRejected("no live session is running")
@@ -60,8 +64,10 @@ class LiveControl:
             else:
                 if active:
                     running = self._active_session_id()
-                    raise CommandRejected(f"busy: live session {running} is running; "
-                                          'send {"on": false} first', scan_id=running)  # fmt: skip
+                    raise CommandRejected(
+                        f'busy: live session {running} is running; send {{"on": false}} first',
+                        scan_id=running,
+                    )
                 try:
                     rate, duration = session_limits(self.config.live, request)
                 except ValueError as exc:
@@ -94,8 +100,7 @@ class LiveControl:
         elif not scan_due and not session.running:
             session.resume()
 
-    def _begin(self, command: LiveCommand, session_id: str, rate: float,
-               duration: float) -> None:  # fmt: skip
+    def _begin(self, command: LiveCommand, session_id: str, rate: float, duration: float) -> None:
         def ended(reason: str) -> None:
             error = None if reason in ("duration reached", "stopped by request") else reason
             self.telemetry.finish_live(command, session_id, error)
@@ -104,8 +109,9 @@ class LiveControl:
         def publish(payload: bytes, period: float) -> None:
             self.telemetry.publish_live(payload, max_age_s=period, qos=self.config.live.qos)
 
-        self.session = LiveSession(self.config, session_id, rate, duration, publish, ended,
-                                   start_map=self._last_map())  # fmt: skip
+        self.session = LiveSession(
+            self.config, session_id, rate, duration, publish, ended, start_map=self._last_map()
+        )
         log.info("live session started", session=session_id, rate_hz=rate, duration_s=duration)
 
     def close(self) -> None:

@@ -67,8 +67,11 @@ class Result:
         if self.surface is not None:
             s = self.surface
             surface = {"min_z": s.min, "mean_z": s.mean, "max_z": s.max}
-            level = {"min": s.min - self.floor_z, "mean": s.mean - self.floor_z,
-                     "max": s.max - self.floor_z}
+            level = {
+                "min": s.min - self.floor_z,
+                "mean": s.mean - self.floor_z,
+                "max": s.max - self.floor_z,
+            }
         return {
             "scan_id": self.scan_id,
             "method": self.method,
@@ -132,8 +135,9 @@ class _Clock:
         self._last = now
 
 
-def _slope_corrected(grid: Grid, filled: np.ndarray, cells_x: np.ndarray, cells_y: np.ndarray,
-                     observed: np.ndarray) -> np.ndarray:
+def _slope_corrected(
+    grid: Grid, filled: np.ndarray, cells_x: np.ndarray, cells_y: np.ndarray, observed: np.ndarray
+) -> np.ndarray:
     """Move each observed cell's mean from its points' centroid to the cell centre.
 
     A cell's points rarely sit evenly over it (cameras see the near part of a slope more
@@ -208,9 +212,12 @@ def reconstruct(
     clock.lap("fuse_crop")
     calibration = calibration or CalibrationConfig()
     registration = registration_residuals(
-        fused, grid, [c.serial for c in scan.cameras], calibration.residual_min_points,
+        fused,
+        grid,
+        [c.serial for c in scan.cameras],
+        calibration.residual_min_points,
         calibration.residual_min_cells,
-    )  # fmt: skip
+    )
     clock.lap("registration_residual")
     if settings.method != "bicm":
         from silo_agent.reconstruct.baselines import baseline_heights
@@ -230,9 +237,15 @@ def reconstruct(
         moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
         clock.lap("voxel_downsample")
     cells = clustered_means(
-        points, camera, cell, grid, moments, settings.cluster_eps_m, settings.cluster_min_points,
+        points,
+        camera,
+        cell,
+        grid,
+        moments,
+        settings.cluster_eps_m,
+        settings.cluster_min_points,
         settings.max_clusters,
-    )  # fmt: skip
+    )
     clock.lap("clustered_means")
     observed = np.isfinite(cells.height) & (grid.inside > 0)
     observed = _trusted_cells(grid, observed, cells.points)
@@ -245,9 +258,7 @@ def reconstruct(
         "fill": settings.fill,
     }
     if not np.any(observed):
-        result = _result(
-            scan, site, settings, grid, fused, None, observed, None, parameters, clock
-        )
+        result = _result(scan, site, settings, grid, fused, None, observed, None, parameters, clock)
         result.registration = registration
         return result
     if settings.fill == "bspline":
@@ -265,20 +276,38 @@ def reconstruct(
     volume = integrate_counted(grid, counted)
     clock.lap("volume")
     result = _result(
-        scan, site, settings, grid, fused, heights, observed, volume, parameters, clock,
-        counted=counted, base=base_plane(grid, heights, site.base, site.floor_z),
-    )  # fmt: skip
+        scan,
+        site,
+        settings,
+        grid,
+        fused,
+        heights,
+        observed,
+        volume,
+        parameters,
+        clock,
+        counted=counted,
+        base=base_plane(grid, heights, site.base, site.floor_z),
+    )
     result.points["after_downsampling"] = len(points)
     result.registration = registration
     return result
 
 
 def _result(
-    scan: Scan, site: Site, settings: ReconstructionConfig, grid: Grid, fused: FusedCloud,
-    heights: np.ndarray | None, observed: np.ndarray, volume: float | None,
-    parameters: dict[str, Any], clock: _Clock, counted: np.ndarray | None = None,
+    scan: Scan,
+    site: Site,
+    settings: ReconstructionConfig,
+    grid: Grid,
+    fused: FusedCloud,
+    heights: np.ndarray | None,
+    observed: np.ndarray,
+    volume: float | None,
+    parameters: dict[str, Any],
+    clock: _Clock,
+    counted: np.ndarray | None = None,
     base: tuple[float, float, float] | None = None,
-) -> Result:  # fmt: skip
+) -> Result:
     """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map."""
     region_area = float(np.sum(grid.inside))
     coverage = float(np.sum(grid.inside * observed) / region_area)
@@ -291,9 +320,16 @@ def _result(
     heightmap = surface = None
     if heights is not None:
         heightmap = HeightMap(
-            grid.origin, grid.step, heights.astype(np.float32), observed, grid.inside,
-            floor_z=site.floor_z, base=base, counted=counted, captured_at=scan.captured_at,
-        )  # fmt: skip
+            grid.origin,
+            grid.step,
+            heights.astype(np.float32),
+            observed,
+            grid.inside,
+            floor_z=site.floor_z,
+            base=base,
+            counted=counted,
+            captured_at=scan.captured_at,
+        )
         if np.any(np.isfinite(heights)):
             surface = surface_levels(grid, heights)
     density = site.bulk_density_t_m3

@@ -208,9 +208,7 @@ def clustered_means(
         valid = (c_n >= min_points) | ((c_n == largest) & (largest < min_points))
     # a second surface is a misaligned view of the first, not something standing on the
     # grain (a wall, a robot, a spout): it must lie close above the lowest valid cluster
-    lowest = np.repeat(
-        np.minimum.reduceat(np.where(valid, c_z, np.inf), cell_start), group_size
-    )
+    lowest = np.repeat(np.minimum.reduceat(np.where(valid, c_z, np.inf), cell_start), group_size)
     valid &= c_z - lowest <= double_surface
 
     # ---- keep the `max_clusters` largest valid clusters of each cell (ties: the lowest); only

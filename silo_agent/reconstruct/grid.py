@@ -53,8 +53,10 @@ def _grid_over(region_bytes: bytes, region_shape: tuple[int, ...], step: float) 
     low = region.min(axis=0)
     rows, cols = grid_shape(region, step)
     if rows * cols > MAX_GRID_CELLS:  # refused before numpy is asked for the arrays
-        raise LimitExceeded(f"the region at grid step {step} m is {rows * cols:,} cells, more "
-                            f"than the limit of {MAX_GRID_CELLS:,}; use a coarser grid step")
+        raise LimitExceeded(
+            f"the region at grid step {step} m is {rows * cols:,} cells, more "
+            f"than the limit of {MAX_GRID_CELLS:,}; use a coarser grid step"
+        )
     origin = (float(low[0]), float(low[1]))
     inside = cell_fractions(region, origin, step, (rows, cols))
     inside.flags.writeable = False
@@ -84,8 +86,9 @@ class CellMoments:
         return cls(count, *(np.zeros((n_cams, n_cells)) for _ in range(4)))
 
     @classmethod
-    def of(cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int,
-           n_cams: int) -> CellMoments:  # fmt: skip
+    def of(
+        cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int, n_cams: int
+    ) -> CellMoments:
         moments = cls.zeros(n_cams, n_cells)
         for index in range(n_cams):
             mine = camera == index
@@ -139,6 +142,9 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
         empty = np.empty((0, 3), np.float32)
         return FusedCloud(empty, np.empty(0, np.uint8), np.empty(0, np.int64), 0, moments)
     return FusedCloud(
-        np.concatenate(kept_points), np.concatenate(kept_camera), np.concatenate(kept_cell), raw,
+        np.concatenate(kept_points),
+        np.concatenate(kept_camera),
+        np.concatenate(kept_cell),
+        raw,
         moments,
     )

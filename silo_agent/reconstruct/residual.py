@@ -49,9 +49,12 @@ def pair_key(a: str, b: str) -> str:
 
 
 def registration_residuals(
-    fused: FusedCloud, grid: Grid, serials: Sequence[str], min_points: int = 5,
+    fused: FusedCloud,
+    grid: Grid,
+    serials: Sequence[str],
+    min_points: int = 5,
     min_cells: int = 50,
-) -> dict[str, PairResidual]:  # fmt: skip
+) -> dict[str, PairResidual]:
     """Residual of every camera pair that shares at least `min_cells` cells.
 
     A cell counts for a camera when it holds at least `min_points` of its points. Pairs are

@@ -23,14 +23,13 @@ def boundary_cells(inside: np.ndarray) -> np.ndarray:
     """Cells of the region touching its edge: cut by the polygon or next to an outside cell."""
     region = inside > 0
     padded = np.pad(region, 1, constant_values=False)
-    all_neighbours_in = (
-        padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
-    )
+    all_neighbours_in = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
     return region & ((inside < 1.0) | ~all_neighbours_in)
 
 
-def base_plane(grid: Grid, heights: np.ndarray, base: str, floor_z: float
-               ) -> tuple[float, float, float]:
+def base_plane(
+    grid: Grid, heights: np.ndarray, base: str, floor_z: float
+) -> tuple[float, float, float]:
     """(a, b, c) of the base under the grain, z = a*x + b*y + c: the floor, or a plane fitted
     along the boundary. Published in the height map so a robot measures from the same base."""
     if base == "floor":

@@ -9,6 +9,14 @@ from silo_agent.sim.scenes import SCENES, Scene, make_scene
 from silo_agent.sim.simulate import SimRig, simulate
 
 __all__ = [
-    "GRAINS", "LAYOUTS", "SCENES", "VIEWS", "Grain", "Scene", "SimRig", "make_scene",
-    "simulate", "view_pose",
+    "GRAINS",
+    "LAYOUTS",
+    "SCENES",
+    "VIEWS",
+    "Grain",
+    "Scene",
+    "SimRig",
+    "make_scene",
+    "simulate",
+    "view_pose",
 ]

@@ -33,8 +33,14 @@ class Intrinsics:
     ppy: float
 
     def to_json(self) -> dict[str, Any]:
-        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
-                "ppx": self.ppx, "ppy": self.ppy}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "ppx": self.ppx,
+            "ppy": self.ppy,
+        }
 
 
 def d455_intrinsics(focal_px: float, width: int = 848, height: int = 480) -> Intrinsics:
@@ -96,8 +102,9 @@ def unit_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float
     return gaussian_filter(rng.standard_normal(shape), sigma_px, mode="wrap") / std
 
 
-def noisy_depth(depth: np.ndarray, focal_px: float, noise: NoiseModel,
-                rng: np.random.Generator) -> np.ndarray:
+def noisy_depth(
+    depth: np.ndarray, focal_px: float, noise: NoiseModel, rng: np.random.Generator
+) -> np.ndarray:
     """True depth (H, W) plus the stereo error along each pixel's ray."""
     share = noise.correlated_share
     unit = np.sqrt(1 - share) * rng.standard_normal(depth.shape)
@@ -105,8 +112,13 @@ def noisy_depth(depth: np.ndarray, focal_px: float, noise: NoiseModel,
     return depth + noise.rms_m(depth, focal_px) * unit
 
 
-def dropouts(depth: np.ndarray, cos_incidence: np.ndarray, k: Intrinsics, noise: NoiseModel,
-             rng: np.random.Generator) -> np.ndarray:
+def dropouts(
+    depth: np.ndarray,
+    cos_incidence: np.ndarray,
+    k: Intrinsics,
+    noise: NoiseModel,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """Pixels a D455 returns no depth for (True = invalid)."""
     columns = np.arange(k.width)[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -140,8 +152,12 @@ class Trace:
     color: np.ndarray | None  # (H, W, 3) uint8
 
 
-def trace(raycaster: Raycaster, pose: np.ndarray, k: Intrinsics,
-          grain_rgb: tuple[int, int, int] | None = None) -> Trace:
+def trace(
+    raycaster: Raycaster,
+    pose: np.ndarray,
+    k: Intrinsics,
+    grain_rgb: tuple[int, int, int] | None = None,
+) -> Trace:
     """Cast every pixel's ray from `pose` (the camera's true camera->silo transform)."""
     rays = pixel_rays(k)
     directions = rays @ pose[:3, :3].T
@@ -166,7 +182,13 @@ def expose(seen: Trace, noise: NoiseModel, rng: np.random.Generator) -> Frame:
     return Frame(depth, noise.depth_unit_m, seen.intrinsics, seen.color)
 
 
-def render(raycaster: Raycaster, pose: np.ndarray, k: Intrinsics, noise: NoiseModel,
-           rng: np.random.Generator, grain_rgb: tuple[int, int, int] | None = None) -> Frame:
+def render(
+    raycaster: Raycaster,
+    pose: np.ndarray,
+    k: Intrinsics,
+    noise: NoiseModel,
+    rng: np.random.Generator,
+    grain_rgb: tuple[int, int, int] | None = None,
+) -> Frame:
     """One frame seen from `pose` (the camera's true camera->silo transform)."""
     return expose(trace(raycaster, pose, k, grain_rgb), noise, rng)

@@ -13,9 +13,22 @@ from silo_agent.choices import VIEW_NAMES
 from silo_agent.sim.scenes import Scene
 
 LAYOUTS = ("paper", "wall")
-VIEWS: dict[str, tuple[int, int]] = dict(zip(VIEW_NAMES, [
-    (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1),
-], strict=True))  # fmt: skip
+VIEWS: dict[str, tuple[int, int]] = dict(
+    zip(
+        VIEW_NAMES,
+        [
+            (0, -1),
+            (1, -1),
+            (1, 0),
+            (1, 1),
+            (0, 1),
+            (-1, 1),
+            (-1, 0),
+            (-1, -1),
+        ],
+        strict=True,
+    )
+)
 PAPER_SQUARE_M = 5.0
 PAPER_CAMERA_Z = 1.0
 WALL_INSET_M = 0.05  # a wall camera's lens in front of the wall
@@ -54,8 +67,10 @@ def view_pose(scene: Scene, view: str, layout: str | None = None) -> np.ndarray:
         raise ValueError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
     surface = float(scene.height(np.array(xy[0]), np.array(xy[1])))
     if z <= surface + 0.1:
-        raise ValueError(f"view {view} of the {layout!r} layout would be buried in the "
-                         f"{scene.name!r} scene's grain (try layout 'wall')")
+        raise ValueError(
+            f"view {view} of the {layout!r} layout would be buried in the "
+            f"{scene.name!r} scene's grain (try layout 'wall')"
+        )
     return look_at(np.array([xy[0], xy[1], z]), target)
 
 
@@ -66,8 +81,9 @@ def axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle_rad) * cross + (1 - np.cos(angle_rad)) * cross @ cross
 
 
-def perturb(pose: np.ndarray, degrees: float, metres: float,
-            rng: np.random.Generator) -> np.ndarray:
+def perturb(
+    pose: np.ndarray, degrees: float, metres: float, rng: np.random.Generator
+) -> np.ndarray:
     """The camera's true pose when its calibration is off by exactly `degrees` (about a random
     axis through the camera) and `metres` (in a random direction)."""
     axis, direction = rng.standard_normal(3), rng.standard_normal(3)

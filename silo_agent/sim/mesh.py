@@ -66,8 +66,9 @@ def box_mesh(box: Box) -> Mesh:
     corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=float)
     vertices = (lo + corners * (hi - lo)).astype(np.float32)
     faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    triangles = np.array([t for a, b, c, d in faces for t in ((a, b, c), (a, c, d))],
-                         dtype=np.uint32)
+    triangles = np.array(
+        [t for a, b, c, d in faces for t in ((a, b, c), (a, c, d))], dtype=np.uint32
+    )
     return Mesh(vertices, triangles, CLUTTER)
 
 

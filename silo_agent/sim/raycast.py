@@ -38,5 +38,6 @@ class Raycaster:
         geometry = result["geometry_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t)
         geometry[~hit] = len(self._materials) - 1
-        return Hits(t=t, normals=result["primitive_normals"].numpy(),
-                    material=self._materials[geometry])
+        return Hits(
+            t=t, normals=result["primitive_normals"].numpy(), material=self._materials[geometry]
+        )

@@ -83,14 +83,16 @@ class Scene:
 # ---------------------------------------------------------------- shapes
 
 
-def cone_height(x: np.ndarray, y: np.ndarray, centre: tuple[float, float], radius: float,
-                slope: float) -> np.ndarray:
+def cone_height(
+    x: np.ndarray, y: np.ndarray, centre: tuple[float, float], radius: float, slope: float
+) -> np.ndarray:
     """Height above the base of a cone at the angle of repose (0 outside its footprint)."""
     return np.maximum(0.0, slope * (radius - np.hypot(x - centre[0], y - centre[1])))
 
 
-def segment_distance(x: np.ndarray, y: np.ndarray, a: tuple[float, float],
-                     b: tuple[float, float]) -> np.ndarray:
+def segment_distance(
+    x: np.ndarray, y: np.ndarray, a: tuple[float, float], b: tuple[float, float]
+) -> np.ndarray:
     """Distance from points to the segment a-b."""
     ax, ay = a
     dx, dy = b[0] - ax, b[1] - ay
@@ -102,17 +104,22 @@ def square(half: float) -> np.ndarray:
     return np.array([[-half, -half], [half, -half], [half, half], [-half, half]], dtype=float)
 
 
-def numeric_volume(height: HeightField, region: np.ndarray, floor_z: float,
-                   step: float = 0.002) -> float:
+def numeric_volume(
+    height: HeightField, region: np.ndarray, floor_z: float, step: float = 0.002
+) -> float:
     """Midpoint integral of max(height - floor_z, 0) over `region` (cells weighted by the
     fraction inside); a check on the closed forms and the truth where none exists."""
     total, _ = _integrate(height, region, floor_z, step, ())
     return total
 
 
-def _integrate(height: HeightField, region: np.ndarray, floor_z: float, step: float,
-               cones: tuple[tuple[tuple[float, float], float, float], ...],
-               ) -> tuple[float, list[tuple[float, np.ndarray]]]:
+def _integrate(
+    height: HeightField,
+    region: np.ndarray,
+    floor_z: float,
+    step: float,
+    cones: tuple[tuple[tuple[float, float], float, float], ...],
+) -> tuple[float, list[tuple[float, np.ndarray]]]:
     """Total volume, and per cone (centre, radius, slope) the volume and volume-weighted centroid
     of the cells where that cone is the highest, row band by row band to bound memory."""
     xmin, ymin = region.min(axis=0)
@@ -137,8 +144,12 @@ def _integrate(height: HeightField, region: np.ndarray, floor_z: float, step: fl
             top = stack.max(axis=0)
             for k in range(len(cones)):
                 mine = np.where(owner == k, top, 0.0) * weight
-                per_cone[k] += [mine.sum(), (mine * gx).sum(), (mine * gy).sum(),
-                                (mine * (floor_z + top / 2)).sum()]
+                per_cone[k] += [
+                    mine.sum(),
+                    (mine * gx).sum(),
+                    (mine * gy).sum(),
+                    (mine * (floor_z + top / 2)).sum(),
+                ]
     piles = [(float(v[0]), v[1:] / v[0]) for v in per_cone]
     return total, piles
 
@@ -150,8 +161,12 @@ PAPER_EXTENT = (-2.7, 2.7, -2.7, 2.7)
 
 
 def _paper_site(g: Grain, ceiling_z: float = 1.5) -> Site:
-    return Site(region=square(PAPER_REGION_HALF), floor_z=0.0, ceiling_z=ceiling_z,
-                bulk_density_t_m3=g.density_t_m3)
+    return Site(
+        region=square(PAPER_REGION_HALF),
+        floor_z=0.0,
+        ceiling_z=ceiling_z,
+        bulk_density_t_m3=g.density_t_m3,
+    )
 
 
 def cone_scene(g: Grain) -> Scene:
@@ -159,11 +174,17 @@ def cone_scene(g: Grain) -> Scene:
     radius = float((3 * PAPER_PILE_M3 / (np.pi * g.slope)) ** (1 / 3))
     peak = g.slope * radius
     return Scene(
-        name="cone", grain=g, site=_paper_site(g),
+        name="cone",
+        grain=g,
+        site=_paper_site(g),
         height=lambda x, y: cone_height(x, y, (0.0, 0.0), radius, g.slope),
-        extent=PAPER_EXTENT, outer_z=0.0,
+        extent=PAPER_EXTENT,
+        outer_z=0.0,
         volume_m3=float(np.pi * radius**2 * peak / 3),
-        target=(0.0, 0.0, peak / 2), layout="paper", wall_half_m=2.5, wall_camera_z=2.5,
+        target=(0.0, 0.0, peak / 2),
+        layout="paper",
+        wall_half_m=2.5,
+        wall_camera_z=2.5,
         params={"centre": (0.0, 0.0), "radius": radius, "height": peak},
     )
 
@@ -181,15 +202,29 @@ def piles_scene(g: Grain) -> Scene:
     site = _paper_site(g)
     total, per_pile = _integrate(height, site.region, site.floor_z, 0.002, cones)
     piles = tuple(
-        PileTruth(apex=(c[0], c[1], r * g.slope), radius_m=r, volume_m3=v,
-                  centroid=(float(m[0]), float(m[1]), float(m[2])))
+        PileTruth(
+            apex=(c[0], c[1], r * g.slope),
+            radius_m=r,
+            volume_m3=v,
+            centroid=(float(m[0]), float(m[1]), float(m[2])),
+        )
         for (c, r), (v, m) in zip(PILES, per_pile, strict=True)
     )
     peak = max(r for _, r in PILES) * g.slope
     return Scene(
-        name="piles", grain=g, site=site, height=height, extent=PAPER_EXTENT, outer_z=0.0,
-        volume_m3=total, target=(0.0, 0.0, peak / 2), layout="paper", wall_half_m=2.5,
-        wall_camera_z=2.5, piles=piles, params={"cones": PILES},
+        name="piles",
+        grain=g,
+        site=site,
+        height=height,
+        extent=PAPER_EXTENT,
+        outer_z=0.0,
+        volume_m3=total,
+        target=(0.0, 0.0, peak / 2),
+        layout="paper",
+        wall_half_m=2.5,
+        wall_camera_z=2.5,
+        piles=piles,
+        params={"cones": PILES},
     )
 
 
@@ -202,11 +237,17 @@ def ridge_scene(g: Grain) -> Scene:
     length = float(np.hypot(b[0] - a[0], b[1] - a[1]))
     peak = g.slope * half
     return Scene(
-        name="ridge", grain=g, site=_paper_site(g),
+        name="ridge",
+        grain=g,
+        site=_paper_site(g),
         height=lambda x, y: np.maximum(0.0, g.slope * (half - segment_distance(x, y, a, b))),
-        extent=PAPER_EXTENT, outer_z=0.0,
+        extent=PAPER_EXTENT,
+        outer_z=0.0,
         volume_m3=g.slope * (length * half**2 + np.pi * half**3 / 3),
-        target=(0.0, 0.0, peak / 2), layout="paper", wall_half_m=2.5, wall_camera_z=2.5,
+        target=(0.0, 0.0, peak / 2),
+        layout="paper",
+        wall_half_m=2.5,
+        wall_camera_z=2.5,
         params={"a": a, "b": b, "half_width": half, "length": length, "height": peak},
     )
 
@@ -232,17 +273,28 @@ def crater_scene(g: Grain) -> Scene:
     """A flat grain surface with the funnel an unloading outlet draws into it."""
     centre, radius, level = CRATER
     depth = g.slope * radius
-    site = Site(region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.8,
-                bulk_density_t_m3=g.density_t_m3)
+    site = Site(
+        region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.8, bulk_density_t_m3=g.density_t_m3
+    )
     return Scene(
-        name="crater", grain=g, site=site,
+        name="crater",
+        grain=g,
+        site=site,
         height=_bay(lambda x, y: level - cone_height(x, y, centre, radius, g.slope), 3.0),
-        extent=BAY_EXTENT, outer_z=None,
+        extent=BAY_EXTENT,
+        outer_z=None,
         volume_m3=level * (2 * BAY_HALF) ** 2 - np.pi * radius**2 * depth / 3,
-        target=(centre[0], centre[1], level - depth), layout="wall", wall_half_m=BAY_HALF,
+        target=(centre[0], centre[1], level - depth),
+        layout="wall",
+        wall_half_m=BAY_HALF,
         wall_camera_z=2.6,
-        params={"centre": centre, "radius": radius, "level": level, "depth": depth,
-                "area": (2 * BAY_HALF) ** 2},
+        params={
+            "centre": centre,
+            "radius": radius,
+            "level": level,
+            "depth": depth,
+            "area": (2 * BAY_HALF) ** 2,
+        },
     )
 
 
@@ -250,14 +302,20 @@ def flat_scene(g: Grain) -> Scene:
     """The crater's bay before the outlet opened: flat grain at the crater's level. With
     `crater` in a scan sequence it is a funnel opening and being filled again."""
     centre, _radius, level = CRATER
-    site = Site(region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.8,
-                bulk_density_t_m3=g.density_t_m3)
+    site = Site(
+        region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.8, bulk_density_t_m3=g.density_t_m3
+    )
     return Scene(
-        name="flat", grain=g, site=site,
+        name="flat",
+        grain=g,
+        site=site,
         height=_bay(lambda x, y: np.full(np.broadcast(x, y).shape, level), 3.0),
-        extent=BAY_EXTENT, outer_z=None,
+        extent=BAY_EXTENT,
+        outer_z=None,
         volume_m3=level * (2 * BAY_HALF) ** 2,
-        target=(centre[0], centre[1], level), layout="wall", wall_half_m=BAY_HALF,
+        target=(centre[0], centre[1], level),
+        layout="wall",
+        wall_half_m=BAY_HALF,
         wall_camera_z=2.6,
         params={"level": level, "area": (2 * BAY_HALF) ** 2},
     )
@@ -270,8 +328,9 @@ def full_scene(g: Grain) -> Scene:
     """A bay filled close to the roof: beams and ceiling in view, cropped by ceiling_z."""
     level, radius, roof = FULL
     peak = level + g.slope * radius
-    site = Site(region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.5,
-                bulk_density_t_m3=g.density_t_m3)
+    site = Site(
+        region=square(BAY_HALF), floor_z=0.0, ceiling_z=2.5, bulk_density_t_m3=g.density_t_m3
+    )
     beam_bottom = 2.75
     clutter = (
         Box((-3.6, -3.6, roof), (3.6, 3.6, roof + 0.1)),
@@ -280,14 +339,26 @@ def full_scene(g: Grain) -> Scene:
         Box((-0.1, -BAY_HALF, beam_bottom + 0.1), (0.1, BAY_HALF, roof)),
     )
     return Scene(
-        name="full", grain=g, site=site,
+        name="full",
+        grain=g,
+        site=site,
         height=_bay(lambda x, y: level + cone_height(x, y, (0.0, 0.0), radius, g.slope), roof),
-        extent=BAY_EXTENT, outer_z=None,
+        extent=BAY_EXTENT,
+        outer_z=None,
         volume_m3=level * (2 * BAY_HALF) ** 2 + np.pi * radius**2 * (peak - level) / 3,
-        target=(0.0, 0.0, level), layout="wall", wall_half_m=BAY_HALF, wall_camera_z=2.6,
+        target=(0.0, 0.0, level),
+        layout="wall",
+        wall_half_m=BAY_HALF,
+        wall_camera_z=2.6,
         clutter=clutter,
-        params={"level": level, "radius": radius, "peak": peak, "roof": roof,
-                "area": (2 * BAY_HALF) ** 2, "beam_bottom": beam_bottom},
+        params={
+            "level": level,
+            "radius": radius,
+            "peak": peak,
+            "roof": roof,
+            "area": (2 * BAY_HALF) ** 2,
+            "beam_bottom": beam_bottom,
+        },
     )
 
 
@@ -306,18 +377,29 @@ BAY_TARGET = (0.0, 0.0, 0.0)  # the wall cameras aim at the middle of the bay's 
 
 
 def _bay_site(g: Grain) -> Site:
-    return Site(region=square(BAY_HALF - BAY_MARGIN_M), floor_z=0.0, ceiling_z=BAY_CEILING_Z,
-                bulk_density_t_m3=g.density_t_m3)
+    return Site(
+        region=square(BAY_HALF - BAY_MARGIN_M),
+        floor_z=0.0,
+        ceiling_z=BAY_CEILING_Z,
+        bulk_density_t_m3=g.density_t_m3,
+    )
 
 
 def empty_scene(g: Grain) -> Scene:
     """The walled bay with nothing in it: floor at z = 0, walls up to BAY_WALL_TOP outside the
     region, volume 0. What a walled installation is calibrated on before it is filled."""
     return Scene(
-        name="empty", grain=g, site=_bay_site(g),
+        name="empty",
+        grain=g,
+        site=_bay_site(g),
         height=_bay(lambda x, y: np.zeros(np.broadcast(x, y).shape), BAY_WALL_TOP),
-        extent=BAY_EXTENT, outer_z=None, volume_m3=0.0, target=BAY_TARGET, layout="wall",
-        wall_half_m=BAY_HALF, wall_camera_z=BAY_CAMERA_Z,
+        extent=BAY_EXTENT,
+        outer_z=None,
+        volume_m3=0.0,
+        target=BAY_TARGET,
+        layout="wall",
+        wall_half_m=BAY_HALF,
+        wall_camera_z=BAY_CAMERA_Z,
         params={"wall_top": BAY_WALL_TOP, "region_half": BAY_HALF - BAY_MARGIN_M},
     )
 
@@ -328,19 +410,36 @@ def bay_cone_scene(g: Grain) -> Scene:
     radius = float((3 * PAPER_PILE_M3 / (np.pi * g.slope)) ** (1 / 3))
     peak = g.slope * radius
     return Scene(
-        name="bay-cone", grain=g, site=_bay_site(g),
+        name="bay-cone",
+        grain=g,
+        site=_bay_site(g),
         height=_bay(lambda x, y: cone_height(x, y, (0.0, 0.0), radius, g.slope), BAY_WALL_TOP),
-        extent=BAY_EXTENT, outer_z=None, volume_m3=float(np.pi * radius**2 * peak / 3),
-        target=BAY_TARGET, layout="wall", wall_half_m=BAY_HALF, wall_camera_z=BAY_CAMERA_Z,
-        params={"centre": (0.0, 0.0), "radius": radius, "height": peak,
-                "wall_top": BAY_WALL_TOP, "region_half": BAY_HALF - BAY_MARGIN_M},
+        extent=BAY_EXTENT,
+        outer_z=None,
+        volume_m3=float(np.pi * radius**2 * peak / 3),
+        target=BAY_TARGET,
+        layout="wall",
+        wall_half_m=BAY_HALF,
+        wall_camera_z=BAY_CAMERA_Z,
+        params={
+            "centre": (0.0, 0.0),
+            "radius": radius,
+            "height": peak,
+            "wall_top": BAY_WALL_TOP,
+            "region_half": BAY_HALF - BAY_MARGIN_M,
+        },
     )
 
 
 _BUILDERS: dict[str, Callable[[Grain], Scene]] = {
-    "cone": cone_scene, "piles": piles_scene, "ridge": ridge_scene,
-    "crater": crater_scene, "full": full_scene, "flat": flat_scene,
-    "empty": empty_scene, "bay-cone": bay_cone_scene,
+    "cone": cone_scene,
+    "piles": piles_scene,
+    "ridge": ridge_scene,
+    "crater": crater_scene,
+    "full": full_scene,
+    "flat": flat_scene,
+    "empty": empty_scene,
+    "bay-cone": bay_cone_scene,
 }
 
 

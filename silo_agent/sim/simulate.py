@@ -46,8 +46,11 @@ def gravity_reading(view: SimView) -> dict[str, object]:
     down, in depth-camera axes of the camera's true pose (an ideal accelerometer), and its angle
     to the vertical the nominal extrinsic implies."""
     gravity = GRAVITY_M_S2 * view.true[:3, :3].T @ np.array([0.0, 0.0, -1.0])
-    return {"gravity": [float(g) for g in gravity], "gravity_samples": 1,
-            "gravity_angle_deg": gravity_angle_deg(gravity, view.nominal)}
+    return {
+        "gravity": [float(g) for g in gravity],
+        "gravity_samples": 1,
+        "gravity_angle_deg": gravity_angle_deg(gravity, view.nominal),
+    }
 
 
 @dataclass(frozen=True)
@@ -61,8 +64,15 @@ class SimView:
     intrinsics: Intrinsics
 
 
-def plan_view(key: str, serial: str, nominal: np.ndarray, seed: int,
-              calib_error: tuple[float, float], width: int = 848, height: int = 480) -> SimView:
+def plan_view(
+    key: str,
+    serial: str,
+    nominal: np.ndarray,
+    seed: int,
+    calib_error: tuple[float, float],
+    width: int = 848,
+    height: int = 480,
+) -> SimView:
     true = perturb(nominal, calib_error[0], calib_error[1], rng_for(seed, key, _CALIBRATION))
     return SimView(key, serial, nominal, true, d455_intrinsics(focal_for(seed, key), width, height))
 
@@ -70,40 +80,60 @@ def plan_view(key: str, serial: str, nominal: np.ndarray, seed: int,
 class SimRig:
     """A scene's world, built once (the costly part), rendered from any camera."""
 
-    def __init__(self, scene: Scene, mesh_step: float = 0.01,
-                 noise: NoiseModel | None = None) -> None:
+    def __init__(
+        self, scene: Scene, mesh_step: float = 0.01, noise: NoiseModel | None = None
+    ) -> None:
         self.scene = scene
         self.noise = noise or NoiseModel()
         self.raycaster = Raycaster(build_world(scene, mesh_step))
 
-    def frames(self, view: SimView, seed: int, count: int = 1,
-               color: bool = False) -> list[Frame]:
+    def frames(self, view: SimView, seed: int, count: int = 1, color: bool = False) -> list[Frame]:
         """`count` successive frames of a camera: one trace, independent noise per frame."""
-        seen = trace(self.raycaster, view.true, view.intrinsics,
-                     self.scene.grain.rgb if color else None)
+        seen = trace(
+            self.raycaster, view.true, view.intrinsics, self.scene.grain.rgb if color else None
+        )
         return [expose(seen, self.noise, rng_for(seed, view.key, _NOISE, i)) for i in range(count)]
 
     def cloud(self, view: SimView, seed: int, color: bool = False) -> CameraCloud:
         points, colors = self.frames(view, seed, color=color)[0].points()
         return CameraCloud(
-            serial=view.serial, points=points, extrinsic=view.nominal,
-            intrinsics=view.intrinsics.to_json(), colors=colors,
-            extra={"sim_view": view.key, "sim_true_extrinsic": view.true.tolist(),
-                   **gravity_reading(view)},
+            serial=view.serial,
+            points=points,
+            extrinsic=view.nominal,
+            intrinsics=view.intrinsics.to_json(),
+            colors=colors,
+            extra={
+                "sim_view": view.key,
+                "sim_true_extrinsic": view.true.tolist(),
+                **gravity_reading(view),
+            },
         )
 
 
-def plan_views(scene: Scene, views: Sequence[str], seed: int,
-               calib_error: tuple[float, float] = (0.0, 0.0),
-               layout: str | None = None) -> list[SimView]:
-    return [plan_view(v, serial_for(v), view_pose(scene, v, layout), seed, calib_error)
-            for v in views]
+def plan_views(
+    scene: Scene,
+    views: Sequence[str],
+    seed: int,
+    calib_error: tuple[float, float] = (0.0, 0.0),
+    layout: str | None = None,
+) -> list[SimView]:
+    return [
+        plan_view(v, serial_for(v), view_pose(scene, v, layout), seed, calib_error) for v in views
+    ]
 
 
-def simulate(scene: Scene | str, views: Sequence[str], seed: int = 0,
-             calib_error: tuple[float, float] = (0.0, 0.0), grid_step: float = 0.02, *,
-             layout: str | None = None, color: bool = False, rig: SimRig | None = None,
-             captured_at: datetime | None = None) -> Scan:
+def simulate(
+    scene: Scene | str,
+    views: Sequence[str],
+    seed: int = 0,
+    calib_error: tuple[float, float] = (0.0, 0.0),
+    grid_step: float = 0.02,
+    *,
+    layout: str | None = None,
+    color: bool = False,
+    rig: SimRig | None = None,
+    captured_at: datetime | None = None,
+) -> Scan:
     """A silo-scan of `scene` from `views`, with `extra["truth"]` the scene's exact volume."""
     if isinstance(scene, str):
         scene = make_scene(scene)
@@ -116,7 +146,9 @@ def simulate(scene: Scene | str, views: Sequence[str], seed: int = 0,
     planned = plan_views(scene, views, seed, calib_error, layout)
     when = (captured_at or datetime.now(UTC)).strftime("%Y-%m-%dT%H:%M:%SZ")
     truth = scene.truth() | {
-        "seed": seed, "views": list(views), "layout": layout or scene.layout,
+        "seed": seed,
+        "views": list(views),
+        "layout": layout or scene.layout,
         "calib_error": {"deg": calib_error[0], "m": calib_error[1]},
     }
     return Scan(

@@ -1,14 +1,14 @@
 """`python -m silo_agent.telemetry`: publish by hand, flush an outbox, keep the schemas in sync.
 
-    publish --config FILE --result RESULT.json [--heightmap MAP.npz] [--alarm EVENT.json]
-            [--repeat N] [--timeout S]
-        queue the messages (one JSON line per queued message on stdout: topic, msg_id, seq, ts),
-        then send them; exit 0 when the broker has all of them, 1 if some are still pending
-        after --timeout (they stay in the outbox for the next run)
-    flush --config FILE [--timeout S] [--linger S]
-        send what an earlier run left in the outbox (then stay connected --linger seconds)
-    schemas [--check] [DIR]
-        write config/schemas/*.json from the payload models, or check they are current
+publish --config FILE --result RESULT.json [--heightmap MAP.npz] [--alarm EVENT.json]
+        [--repeat N] [--timeout S]
+    queue the messages (one JSON line per queued message on stdout: topic, msg_id, seq, ts),
+    then send them; exit 0 when the broker has all of them, 1 if some are still pending
+    after --timeout (they stay in the outbox for the next run)
+flush --config FILE [--timeout S] [--linger S]
+    send what an earlier run left in the outbox (then stay connected --linger seconds)
+schemas [--check] [DIR]
+    write config/schemas/*.json from the payload models, or check they are current
 """
 
 from __future__ import annotations
@@ -72,8 +72,9 @@ def cmd_publish(args: argparse.Namespace) -> int:
         one = dict(summary)
         if args.repeat > 1:
             one["scan_id"] = f"{summary['scan_id']}-{k}"
-        for topic, env in zip(("scan", "volume", "heightmap"),
-                              telemetry.publish_result(one, heightmap), strict=False):
+        for topic, env in zip(
+            ("scan", "volume", "heightmap"), telemetry.publish_result(one, heightmap), strict=False
+        ):
             _emit(telemetry.topic(topic), env)
     if args.alarm:
         event = json.loads(args.alarm.read_text(encoding="utf-8"))
@@ -104,8 +105,11 @@ def cmd_schemas(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m silo_agent.telemetry", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m silo_agent.telemetry",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument(
         "--log-level", default="info", choices=["debug", "info", "warning", "error"]
     )

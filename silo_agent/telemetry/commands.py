@@ -116,7 +116,11 @@ class Commands:
     """Routes each incoming message by topic and answers the scan and live commands."""
 
     def __init__(
-        self, cfg: MqttConfig, base: str, spb_topics: sparkplug.Topics, outbox: Outbox,
+        self,
+        cfg: MqttConfig,
+        base: str,
+        spb_topics: sparkplug.Topics,
+        outbox: Outbox,
         session: SessionCallbacks,
     ) -> None:
         self.cfg = cfg
@@ -148,14 +152,24 @@ class Commands:
         self, command: ScanCommand, scan_id: str | None = None, error: str | None = None
     ) -> None:
         self._reply(
-            command.reply_topic, command.correlation, command.request_id,
-            status="error" if error else "done", accepted=True, error=error, scan_id=scan_id,
+            command.reply_topic,
+            command.correlation,
+            command.request_id,
+            status="error" if error else "done",
+            accepted=True,
+            error=error,
+            scan_id=scan_id,
         )
 
     def finish_live(self, command: LiveCommand, session_id: str, error: str | None) -> None:
         self._reply(
-            command.reply_topic, command.correlation, command.request.request_id,
-            status="error" if error else "done", accepted=True, error=error, scan_id=session_id,
+            command.reply_topic,
+            command.correlation,
+            command.request.request_id,
+            status="error" if error else "done",
+            accepted=True,
+            error=error,
+            scan_id=session_id,
         )
 
     def dispatch(self, link: Link, msg: mqtt.MQTTMessage) -> None:
@@ -224,7 +238,12 @@ class Commands:
         if error is not None:
             log.warning("scan request refused", request_id=request_id, error=error)
             self._reply(
-                reply_topic, correlation, request_id, status="error", accepted=False, error=error,
+                reply_topic,
+                correlation,
+                request_id,
+                status="error",
+                accepted=False,
+                error=error,
                 scan_id=about,
             )
         else:
@@ -244,12 +263,24 @@ class Commands:
             session_id = self._live_callback(LiveCommand(request, reply_topic, correlation))
         except (ValueError, CommandRejected) as exc:
             log.warning("live request refused", request_id=request_id, error=str(exc))
-            self._reply(reply_topic, correlation, request_id, status="error", accepted=False,
-                        error=str(exc) or "rejected")  # fmt: skip
+            self._reply(
+                reply_topic,
+                correlation,
+                request_id,
+                status="error",
+                accepted=False,
+                error=str(exc) or "rejected",
+            )
             return
         log.info("live request accepted", request_id=request_id, session=session_id)
-        self._reply(reply_topic, correlation, request_id, status="accepted", accepted=True,
-                    scan_id=session_id)  # fmt: skip
+        self._reply(
+            reply_topic,
+            correlation,
+            request_id,
+            status="accepted",
+            accepted=True,
+            scan_id=session_id,
+        )
 
     def _reply(
         self,
@@ -265,8 +296,12 @@ class Commands:
         def build(env: Envelope | None) -> bytes:
             assert env is not None
             return CommandReplyPayload(
-                **env.model_dump(), request_id=request_id, status=status, accepted=accepted,
-                error=error, scan_id=scan_id,
+                **env.model_dump(),
+                request_id=request_id,
+                status=status,
+                accepted=accepted,
+                error=error,
+                scan_id=scan_id,
             ).to_bytes()
 
         self.outbox.enqueue(topic, build, qos=1, kind=KIND_JSON, correlation=correlation)

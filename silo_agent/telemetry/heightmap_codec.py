@@ -122,8 +122,9 @@ def _or_nan(value: float | None) -> float:
     return math.nan if value is None else float(value)
 
 
-def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
-                     flags: int = 0, level: int = 9) -> bytes:
+def encode_heightmap(
+    hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID, flags: int = 0, level: int = 9
+) -> bytes:
     """Encode a height map; raises ValueError if its heights span more than 65.534 m.
     `level` is zlib's: 9 for a retained map sent once, lower for live maps sent twice a
     second."""
@@ -142,17 +143,44 @@ def encode_heightmap(hm: HeightMap, scan_id: str, frame_id: str = FRAME_ID,
     scan = scan_id.encode()
     captured = (hm.captured_at or "").encode()
     header = HEADER.pack(
-        MAGIC, VERSION, ENCODING_UINT16_MM, FILTER_ROW_DELTA,
-        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER | flags, rows, cols, float(hm.step),
-        float(hm.origin[0]), float(hm.origin[1]), z_offset, UNKNOWN, len(frame), len(scan),
-        len(heights_blob), len(observed_blob), len(inside_blob),
-    )  # fmt: skip
+        MAGIC,
+        VERSION,
+        ENCODING_UINT16_MM,
+        FILTER_ROW_DELTA,
+        FLAG_ROW0_MIN_Y | FLAG_ORIGIN_OUTER_CORNER | flags,
+        rows,
+        cols,
+        float(hm.step),
+        float(hm.origin[0]),
+        float(hm.origin[1]),
+        z_offset,
+        UNKNOWN,
+        len(frame),
+        len(scan),
+        len(heights_blob),
+        len(observed_blob),
+        len(inside_blob),
+    )
     extension = EXTENSION.pack(
-        _or_nan(hm.floor_z), *(_or_nan(v) for v in base), counted_offset, len(captured),
+        _or_nan(hm.floor_z),
+        *(_or_nan(v) for v in base),
+        counted_offset,
+        len(captured),
         len(counted_blob),
-    )  # fmt: skip
-    return b"".join([header, frame, scan, heights_blob, observed_blob, inside_blob, extension,
-                     captured, counted_blob])  # fmt: skip
+    )
+    return b"".join(
+        [
+            header,
+            frame,
+            scan,
+            heights_blob,
+            observed_blob,
+            inside_blob,
+            extension,
+            captured,
+            counted_blob,
+        ]
+    )
 
 
 def _known(value: float) -> float | None:
@@ -163,12 +191,14 @@ LIVE_LEVEL = 1  # zlib level of live maps: 2 a second, on one core, made and sen
 
 
 def _packed(mask: np.ndarray) -> bytes:
-    return zlib.compress(np.packbits(np.asarray(mask, dtype=bool).ravel(), bitorder="big")
-                         .tobytes(), LIVE_LEVEL)  # fmt: skip
+    return zlib.compress(
+        np.packbits(np.asarray(mask, dtype=bool).ravel(), bitorder="big").tobytes(), LIVE_LEVEL
+    )
 
 
-def encode_live_heightmap(hm: HeightMap, session_id: str, sequence: int, meta: dict,
-                          layers: dict[str, np.ndarray]) -> bytes:
+def encode_live_heightmap(
+    hm: HeightMap, session_id: str, sequence: int, meta: dict, layers: dict[str, np.ndarray]
+) -> bytes:
     """A live map: the SLHM height map with FLAG_LIVE, then sequence, metadata and bit layers."""
     parts = [encode_heightmap(hm, session_id, flags=FLAG_LIVE, level=LIVE_LEVEL)]
     text = json.dumps(meta, separators=(",", ":")).encode()
@@ -210,8 +240,11 @@ def decode_live_heightmap(data: bytes) -> LiveHeightMap:
             name = data[pos + 1 : pos + 1 + n].decode()
             (size,) = struct.unpack_from("<I", data, pos + 1 + n)
             pos += 5 + n
-            bits = np.unpackbits(np.frombuffer(zlib.decompress(data[pos : pos + size]), np.uint8),
-                                 count=hm.heights.size, bitorder="big")  # fmt: skip
+            bits = np.unpackbits(
+                np.frombuffer(zlib.decompress(data[pos : pos + size]), np.uint8),
+                count=hm.heights.size,
+                bitorder="big",
+            )
             layers[name] = bits.reshape(hm.shape).astype(bool)
             pos += size
     except (struct.error, IndexError, ValueError, zlib.error) as exc:
@@ -235,9 +268,24 @@ def _decode(data: bytes) -> tuple[HeightMap, str, str, int]:
     if len(data) < HEADER.size or data[:4] != MAGIC:
         raise HeightMapFormatError("not an SLHM height map (bad magic or too short)")
     (
-        _magic, version, encoding, filt, flags, rows, cols, step, ox, oy, z_offset,
-        unknown, f_len, s_len, h_len, o_len, i_len,
-    ) = HEADER.unpack_from(data)  # fmt: skip
+        _magic,
+        version,
+        encoding,
+        filt,
+        flags,
+        rows,
+        cols,
+        step,
+        ox,
+        oy,
+        z_offset,
+        unknown,
+        f_len,
+        s_len,
+        h_len,
+        o_len,
+        i_len,
+    ) = HEADER.unpack_from(data)
     if version not in VERSIONS or encoding != ENCODING_UINT16_MM or filt != FILTER_ROW_DELTA:
         raise HeightMapFormatError(
             f"unsupported SLHM version {version} / encoding {encoding} / filter {filt}"
@@ -274,8 +322,12 @@ def _decode(data: bytes) -> tuple[HeightMap, str, str, int]:
     except zlib.error as exc:
         raise HeightMapFormatError(f"corrupt compressed layer: {exc}") from None
     n = rows * cols
-    if (len(raw[0]) != 2 * n or len(raw[1]) != (n + 7) // 8 or len(raw[2]) != n
-            or (counted_raw is not None and len(counted_raw) != 2 * n)):  # fmt: skip
+    if (
+        len(raw[0]) != 2 * n
+        or len(raw[1]) != (n + 7) // 8
+        or len(raw[2]) != n
+        or (counted_raw is not None and len(counted_raw) != 2 * n)
+    ):
         raise HeightMapFormatError("layer sizes do not match rows x cols")
     observed = np.unpackbits(np.frombuffer(raw[1], dtype=np.uint8), count=n, bitorder="big")
     counted = None

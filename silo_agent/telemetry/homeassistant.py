@@ -36,8 +36,15 @@ READING_ATTRIBUTES = (
 )
 
 
-def _reading(uid: str, name: str, template: str, unit: str | None, device_class: str | None,
-             state: str, expire_after_s: int | None) -> dict:
+def _reading(
+    uid: str,
+    name: str,
+    template: str,
+    unit: str | None,
+    device_class: str | None,
+    state: str,
+    expire_after_s: int | None,
+) -> dict:
     """A measurement sensor on P/volume, with the scan's identity as attributes."""
     component: dict = {
         "p": "sensor",
@@ -73,19 +80,34 @@ def discovery_config(
     uid = f"silo_agent_{silo_id}"
     components = {
         "volume": _reading(
-            f"{uid}_volume", "Volume", _when_valid("value_json.volume_m3"), "m³",
-            "volume_storage", volume, expire_after_s,
+            f"{uid}_volume",
+            "Volume",
+            _when_valid("value_json.volume_m3"),
+            "m³",
+            "volume_storage",
+            volume,
+            expire_after_s,
         ),
         # HA's weight class has no tonne: kilograms, from the payload's mass_t
         "mass": _reading(
-            f"{uid}_mass", "Mass",
-            _when_valid("(value_json.mass_t * 1000) | round(1) "
-                        "if value_json.mass_t is not none else None"),
-            "kg", "weight", volume, expire_after_s,
+            f"{uid}_mass",
+            "Mass",
+            _when_valid(
+                "(value_json.mass_t * 1000) | round(1) if value_json.mass_t is not none else None"
+            ),
+            "kg",
+            "weight",
+            volume,
+            expire_after_s,
         ),
         "coverage": _reading(
-            f"{uid}_coverage", "Coverage", "{{ (value_json.coverage * 100) | round(1) }}", "%",
-            None, volume, expire_after_s,
+            f"{uid}_coverage",
+            "Coverage",
+            "{{ (value_json.coverage * 100) | round(1) }}",
+            "%",
+            None,
+            volume,
+            expire_after_s,
         ),
         "valid": {
             "p": "binary_sensor",
@@ -121,8 +143,13 @@ def discovery_config(
             components[key]["expire_after"] = expire_after_s
     for key in ("min", "mean", "max"):
         components[f"level_{key}"] = _reading(
-            f"{uid}_level_{key}", f"Level {key}", _when_valid(f"value_json.level.{key}"), "m",
-            "distance", volume, expire_after_s,
+            f"{uid}_level_{key}",
+            f"Level {key}",
+            _when_valid(f"value_json.level.{key}"),
+            "m",
+            "distance",
+            volume,
+            expire_after_s,
         )
     for alarm_type in alarm_types:
         components[f"alarm_{alarm_type}"] = {

@@ -29,8 +29,9 @@ def parse_live_request(payload: bytes | bytearray) -> LiveRequest:
     try:
         return LiveRequest.model_validate_json(payload)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'body'}: {e['msg']}"
-                             for e in exc.errors())  # fmt: skip
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'body'}: {e['msg']}" for e in exc.errors()
+        )
         raise ValueError(f"invalid live request: {problems}") from None
 
 
@@ -41,8 +42,9 @@ def session_limits(settings: LiveConfig, request: LiveRequest) -> tuple[float, f
     if rate > settings.rate_hz:
         raise ValueError(f"rate_hz {rate:g} above live.rate_hz {settings.rate_hz:g}")
     if duration > settings.max_duration_s:
-        raise ValueError(f"duration_s {duration:g} above live.max_duration_s "
-                         f"{settings.max_duration_s:g}")  # fmt: skip
+        raise ValueError(
+            f"duration_s {duration:g} above live.max_duration_s {settings.max_duration_s:g}"
+        )
     return rate, duration
 
 

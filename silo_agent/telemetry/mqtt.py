@@ -91,7 +91,10 @@ class Telemetry:
         identity = Identity(self.base, silo_id, version, self.client_id, self.spb_topics)
         self.session = Session(cfg, identity, self.outbox, self.state, self.spb_node)
         self.commands = Commands(
-            cfg, self.base, self.spb_topics, self.outbox,
+            cfg,
+            self.base,
+            self.spb_topics,
+            self.outbox,
             SessionCallbacks(
                 homeassistant_online=self.session.homeassistant_online,
                 rebirth_requested=self.session.rebirth_requested,
@@ -99,9 +102,15 @@ class Telemetry:
             ),
         )
         self.transport = Transport(
-            cfg, self.client_id, credentials, self.outbox, status_topic=self.topic("status"),
-            spb_topics=self.spb_topics, subscriptions=self.commands.subscriptions(),
-            session=self.session, on_message=self.commands.dispatch,
+            cfg,
+            self.client_id,
+            credentials,
+            self.outbox,
+            status_topic=self.topic("status"),
+            spb_topics=self.spb_topics,
+            subscriptions=self.commands.subscriptions(),
+            session=self.session,
+            on_message=self.commands.dispatch,
         )
         self._links = self.transport.links
         self._thread: threading.Thread | None = None
@@ -117,15 +126,27 @@ class Telemetry:
         message = (
             f"outbox database {self.outbox.path} was corrupt: moved aside to {aside.name},"
             " the messages queued in it were not sent; remove it once inspected"
-            if aside is not None else "no corrupt outbox copy left"
+            if aside is not None
+            else "no corrupt outbox copy left"
         )
-        self.publish_alarm({"type": "outbox", "state": change, "scan_id": None,
-                            "severity": "warning", "message": message})
+        self.publish_alarm(
+            {
+                "type": "outbox",
+                "state": change,
+                "scan_id": None,
+                "severity": "warning",
+                "message": message,
+            }
+        )
 
     @classmethod
     def from_config(cls, config: Config) -> Telemetry:
-        return cls(config.mqtt, config.silo.id, [c.serial for c in config.cameras],
-                   expire_after_s=stale_after_s(config.schedule, config.silo.timezone))
+        return cls(
+            config.mqtt,
+            config.silo.id,
+            [c.serial for c in config.cameras],
+            expire_after_s=stale_after_s(config.schedule, config.silo.timezone),
+        )
 
     def topic(self, suffix: str) -> str:
         return f"{self.base}/{suffix}"
@@ -274,7 +295,11 @@ class Telemetry:
     # ------------------------------------------------------------ enqueueing
 
     def _enqueue(
-        self, suffix: str, build: Callable[[Envelope], bytes], *, retain: bool = False,
+        self,
+        suffix: str,
+        build: Callable[[Envelope], bytes],
+        *,
+        retain: bool = False,
         kind: str = KIND_JSON,
     ) -> Envelope:
         """Commit `P/<suffix>` (QoS 1; a retained topic keeps only its latest pending row)."""
@@ -291,7 +316,10 @@ class Telemetry:
 
     def _enqueue_sparkplug(self, raw: bytes, new_metric: bool) -> None:
         self.outbox.enqueue(
-            self.spb_topics.node("NDATA"), lambda _e: raw, qos=0, kind=KIND_SPARKPLUG,
+            self.spb_topics.node("NDATA"),
+            lambda _e: raw,
+            qos=0,
+            kind=KIND_SPARKPLUG,
             with_envelope=False,
         )
         if new_metric:

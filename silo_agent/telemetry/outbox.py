@@ -96,8 +96,18 @@ class Row:
 def _to_row(r: tuple) -> Row:
     """A Row from the columns id, topic, payload, qos, retain, kind, msg_id, seq, correlation,
     created (in that order) of a SELECT."""
-    return Row(r[0], r[1], bytes(r[2]), r[3], bool(r[4]), r[5], r[6], r[7],
-               None if r[8] is None else bytes(r[8]), r[9])
+    return Row(
+        r[0],
+        r[1],
+        bytes(r[2]),
+        r[3],
+        bool(r[4]),
+        r[5],
+        r[6],
+        r[7],
+        None if r[8] is None else bytes(r[8]),
+        r[9],
+    )
 
 
 class Outbox:
@@ -144,7 +154,9 @@ class Outbox:
                 os.replace(source, aside.with_name(aside.name + suffix))
         log.error(
             "outbox database is corrupt: moved aside, starting with an empty outbox",
-            path=str(self.path), moved_to=str(aside), error=str(exc),
+            path=str(self.path),
+            moved_to=str(aside),
+            error=str(exc),
         )
         return aside
 
@@ -160,8 +172,9 @@ class Outbox:
         except FileNotFoundError:
             return {}
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            log.warning("outbox state file unreadable, ignored", path=str(self.state_path),
-                        error=str(exc))
+            log.warning(
+                "outbox state file unreadable, ignored", path=str(self.state_path), error=str(exc)
+            )
             return {}
 
     def _write_state(self) -> None:
@@ -169,8 +182,9 @@ class Outbox:
         try:
             write_atomic(self.state_path, json.dumps(self._state).encode("utf-8"))
         except OSError as exc:
-            log.warning("cannot write the outbox state file", path=str(self.state_path),
-                        error=str(exc))
+            log.warning(
+                "cannot write the outbox state file", path=str(self.state_path), error=str(exc)
+            )
 
     def _resume_counters(self) -> None:
         """A database without a `seq` (new, emptied or replaced) continues from the state
@@ -181,12 +195,14 @@ class Outbox:
                     if self._state.get(name, 0) > self._counter(name):
                         self._bump(name, self._state[name] - self._counter(name))
             self._pass_will()
-            self._state = {"seq": max(self._state.get("seq", 0), self._counter("seq")),
-                           "bd_seq": self._counter("bd_seq"),
-                           "corrupt_alarm": self._state.get("corrupt_alarm", 0)}
+            self._state = {
+                "seq": max(self._state.get("seq", 0), self._counter("seq")),
+                "bd_seq": self._counter("bd_seq"),
+                "corrupt_alarm": self._state.get("corrupt_alarm", 0),
+            }
 
     def corrupt_alarm_change(self) -> str | None:
-        """"raised" when a corrupt outbox was just moved aside, "cleared" at the first start
+        """ "raised" when a corrupt outbox was just moved aside, "cleared" at the first start
         after the alarm was raised that finds no moved-aside copy left, else None."""
         if self.moved_aside is not None:
             change, flag = "raised", 1
@@ -315,23 +331,30 @@ class Outbox:
             env = Envelope.new(self._next_seq()) if with_envelope else None
             payload = build(env)
             if latest:
-                self._db.execute(
-                    "DELETE FROM messages WHERE topic = ? AND latest = 1", (topic,)
-                )
+                self._db.execute("DELETE FROM messages WHERE topic = ? AND latest = 1", (topic,))
             self._db.execute(
                 "INSERT INTO messages(topic, payload, qos, retain, latest, kind, msg_id, seq,"
                 " correlation, created, size) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
-                    topic, payload, qos, int(retain), int(latest), kind,
-                    env.msg_id if env else None, env.seq if env else None,
-                    correlation, time.time(), len(payload) + len(topic),
+                    topic,
+                    payload,
+                    qos,
+                    int(retain),
+                    int(latest),
+                    kind,
+                    env.msg_id if env else None,
+                    env.seq if env else None,
+                    correlation,
+                    time.time(),
+                    len(payload) + len(topic),
                 ),
             )
             dropped = self._enforce_bounds()
         if dropped:
             log.warning(
                 "outbox bound reached, oldest messages dropped",
-                dropped=dropped, total_dropped=self.counter("dropped"),
+                dropped=dropped,
+                total_dropped=self.counter("dropped"),
             )
         return env
 

@@ -22,7 +22,14 @@ MAX_COMMAND_BYTES = 65536
 # Alarm types every consumer can count on (Sparkplug NBIRTH and HA declare them up front);
 # others may appear and are added as they are seen.
 ALARM_TYPES = (
-    "collapse", "level_high", "level_low", "change", "camera", "coverage", "cache", "calibration",
+    "collapse",
+    "level_high",
+    "level_low",
+    "change",
+    "camera",
+    "coverage",
+    "cache",
+    "calibration",
 )
 
 
@@ -87,7 +94,8 @@ class OutboxState(_Model):
     dropped: int = Field(ge=0, description="messages dropped by the outbox bounds, ever")
     rejected: int = Field(ge=0, description="messages the broker refused (e.g. ACL), ever")
     dead_lettered: int = Field(
-        ge=0, description="messages that could never be published (e.g. over the broker's"
+        ge=0,
+        description="messages that could never be published (e.g. over the broker's"
         " maximum packet size), set aside in the outbox's dead_letter table, ever",
     )
 
@@ -260,8 +268,13 @@ def scan_payload(env: Envelope, summary: dict) -> ScanPayload:
 
 def idle_alarm(alarm_type: str) -> dict:
     """The state body of an alarm type that is not raised (nothing raised it yet)."""
-    return {"type": alarm_type, "state": "cleared", "severity": "info", "scan_id": None,
-            "message": "not raised"}
+    return {
+        "type": alarm_type,
+        "state": "cleared",
+        "severity": "info",
+        "scan_id": None,
+        "message": "not raised",
+    }
 
 
 def alarm_payload(env: Envelope, event: dict) -> AlarmPayload:

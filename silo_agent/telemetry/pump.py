@@ -37,8 +37,9 @@ POISON_STRIKES = 3
 POISON_SESSION_S = 10.0
 
 
-def publish_packet_size(topic: str, payload: bytes, qos: int, props: Properties | None,
-                        v5: bool) -> int:
+def publish_packet_size(
+    topic: str, payload: bytes, qos: int, props: Properties | None, v5: bool
+) -> int:
     """Bytes of the PUBLISH packet paho will send, to compare with the broker's maximum."""
     body = 2 + len(topic.encode("utf-8")) + (2 if qos else 0) + len(payload)
     if v5:
@@ -134,7 +135,9 @@ class Pump:
                 row = self.outbox.row(head)
                 if row is not None:
                     self._dead_letter(
-                        link, row, f"the broker closed the connection each time it was sent"
+                        link,
+                        row,
+                        f"the broker closed the connection each time it was sent"
                         f" ({strikes} sessions in a row)",
                     )
                 link.suspect = (0, 0)
@@ -145,8 +148,11 @@ class Pump:
         self.outbox.dead_letter(row.id, reason)
         link.last_id = row.id
         log.error(
-            "message can never be published: dead-lettered", topic=row.topic[:200],
-            msg_id=row.msg_id, reason=reason, outbox=str(self.outbox.path),
+            "message can never be published: dead-lettered",
+            topic=row.topic[:200],
+            msg_id=row.msg_id,
+            reason=reason,
+            outbox=str(self.outbox.path),
         )
         self.outbox_changed()
 

@@ -34,6 +34,7 @@ from silo_agent.telemetry.payloads import (
 
 log = structlog.get_logger(__name__)
 
+
 @dataclass
 class NodeState:
     """What `P/status`, the alarm states, HA discovery and the births report, and which of
@@ -73,7 +74,11 @@ class Session:
     Home Assistant and Sparkplug host events come from the command dispatcher)."""
 
     def __init__(
-        self, cfg: MqttConfig, me: Identity, outbox: Outbox, state: NodeState,
+        self,
+        cfg: MqttConfig,
+        me: Identity,
+        outbox: Outbox,
+        state: NodeState,
         spb_node: sparkplug.SparkplugNode,
     ) -> None:
         self.cfg = cfg
@@ -139,7 +144,8 @@ class Session:
             # reconnects; the next session (new bdSeq) births when the host is back.
             log.warning("Sparkplug primary host offline, NDEATH and reconnect")
             link.client.publish(
-                self.me.spb_topics.node("NDEATH"), sparkplug.SparkplugNode.death(link.bd_seq),
+                self.me.spb_topics.node("NDEATH"),
+                sparkplug.SparkplugNode.death(link.bd_seq),
                 qos=1,
             )
             link.refused = "primary host went offline"
@@ -186,8 +192,9 @@ class Session:
         if self.cfg.protocol == "5":
             props = Properties(PacketTypes.PUBLISH)
             props.ContentType = HEIGHTMAP_CONTENT_TYPE
-        link.client.publish(self.me.topic("heightmap/live"), live[0], qos=live[2], retain=False,
-                            properties=props)  # fmt: skip
+        link.client.publish(
+            self.me.topic("heightmap/live"), live[0], qos=live[2], retain=False, properties=props
+        )
 
     def _publish_status(self, link: Link, state: AgentState) -> int:
         payload = self.status(state, self.outbox.next_envelope())
@@ -208,8 +215,11 @@ class Session:
             alarm_types = list(self.state.alarm_types)
             expire_after_s = self.state.expire_after_s
         topic, payload = homeassistant.discovery_config(
-            discovery_prefix=ha.discovery_prefix, base_topic=self.me.base,
-            silo_id=self.me.silo_id, version=self.me.version, alarm_types=alarm_types,
+            discovery_prefix=ha.discovery_prefix,
+            base_topic=self.me.base,
+            silo_id=self.me.silo_id,
+            version=self.me.version,
+            alarm_types=alarm_types,
             expire_after_s=expire_after_s,
         )
         link.publish_direct(topic, payload, retain=True)

@@ -229,9 +229,7 @@ class Transport:
         client = self._new_client(link)
         try:
             if self.cfg.protocol == "5":
-                client.connect(
-                    self.cfg.host, self.cfg.port, self.cfg.keepalive_s, clean_start=True
-                )
+                client.connect(self.cfg.host, self.cfg.port, self.cfg.keepalive_s, clean_start=True)
             else:
                 client.connect(self.cfg.host, self.cfg.port, self.cfg.keepalive_s)
         except (OSError, ValueError) as exc:
@@ -254,7 +252,9 @@ class Transport:
             self.pump.session_ended(link)
         if was_connected:
             log.warning(
-                "connection to the broker lost", link=link.name, reason=reason,
+                "connection to the broker lost",
+                link=link.name,
+                reason=reason,
                 unacked=len(link.inflight),
             )
             link.delay = self.cfg.reconnect_min_s
@@ -266,8 +266,12 @@ class Transport:
         link.retry_at = time.monotonic() + wait
         if not quiet:
             log.error(
-                "MQTT connection failed, retrying", link=link.name, host=self.cfg.host,
-                port=self.cfg.port, reason=reason, retry_in_s=round(wait, 2),
+                "MQTT connection failed, retrying",
+                link=link.name,
+                host=self.cfg.host,
+                port=self.cfg.port,
+                reason=reason,
+                retry_in_s=round(wait, 2),
             )
         link.delay = min(link.delay * 2, self.cfg.reconnect_max_s)
 

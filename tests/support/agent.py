@@ -22,35 +22,70 @@ def toml_value(value: object) -> str:
     return json.dumps(value) if not isinstance(value, bool) else str(value).lower()
 
 
-def write_config(path: Path, port: int, workdir: Path, *, schedule: dict | None = None,
-                 simulation: dict | None = None, audit: dict | None = None,
-                 alarms: dict | None = None, metrics: dict | None = None,
-                 mqtt: dict | None = None,
-                 cameras: tuple[tuple[str, str | None], ...] = (("sim-A2", "A2"), ("sim-A6", "A6")),
-                 ) -> Path:
+def write_config(
+    path: Path,
+    port: int,
+    workdir: Path,
+    *,
+    schedule: dict | None = None,
+    simulation: dict | None = None,
+    audit: dict | None = None,
+    alarms: dict | None = None,
+    metrics: dict | None = None,
+    mqtt: dict | None = None,
+    cameras: tuple[tuple[str, str | None], ...] = (("sim-A2", "A2"), ("sim-A6", "A6")),
+) -> Path:
     """A config for the test daemon; sections given replace the defaults here (`mqtt` adds
     keys, dotted for its sub-tables: `{"sparkplug.enabled": True}`)."""
     sections = {
         "schedule": schedule if schedule is not None else {"scan_at_start": True},
-        "simulation": {"sequence": ["flat"], "vary_noise": True, "layout": "wall",
-                       **(simulation or {})},
-        "audit": {"directory": str(workdir / "scans"), "max_bytes": 200_000_000,
-                  "max_age_days": 30, **(audit or {})},
-        "mqtt": {"host": "127.0.0.1", "port": port, "outbox_path": str(workdir / "outbox.sqlite"),
-                 "reconnect_min_s": 0.1, "reconnect_max_s": 0.5, "keepalive_s": 5,
-                 "shutdown_timeout_s": 2.0, **(mqtt or {})},
+        "simulation": {
+            "sequence": ["flat"],
+            "vary_noise": True,
+            "layout": "wall",
+            **(simulation or {}),
+        },
+        "audit": {
+            "directory": str(workdir / "scans"),
+            "max_bytes": 200_000_000,
+            "max_age_days": 30,
+            **(audit or {}),
+        },
+        "mqtt": {
+            "host": "127.0.0.1",
+            "port": port,
+            "outbox_path": str(workdir / "outbox.sqlite"),
+            "reconnect_min_s": 0.1,
+            "reconnect_max_s": 0.5,
+            "keepalive_s": 5,
+            "shutdown_timeout_s": 2.0,
+            **(mqtt or {}),
+        },
         "alarms": alarms or {},
         "metrics": metrics or {},
     }
     lines = [
-        "[silo]", f'id = "{SILO}"',
+        "[silo]",
+        f'id = "{SILO}"',
         "region = [[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]]",
-        "floor_z = 0.0", "ceiling_z = 2.8", "bulk_density_t_m3 = 0.77", "",
-        "[reconstruction]", "grid_step_m = 0.05", "",
+        "floor_z = 0.0",
+        "ceiling_z = 2.8",
+        "bulk_density_t_m3 = 0.77",
+        "",
+        "[reconstruction]",
+        "grid_step_m = 0.05",
+        "",
     ]
     for serial, view in cameras:  # a sim camera without a view cannot be placed: it fails
-        lines += ["[[cameras]]", f'serial = "{serial}"', 'source = "sim"',
-                  *([f'view = "{view}"'] if view else []), "width = 424", "height = 240", ""]
+        lines += [
+            "[[cameras]]",
+            f'serial = "{serial}"',
+            'source = "sim"',
+            *([f'view = "{view}"'] if view else []),
+            "width = 424",
+            "height = 240",
+            "",
+        ]
     for name, values in sections.items():
         lines.append(f"[{name}]")
         lines += [f"{k} = {toml_value(v)}" for k, v in values.items()]
@@ -62,15 +97,18 @@ def write_config(path: Path, port: int, workdir: Path, *, schedule: dict | None 
 class Daemon:
     """`silo-agent run` in a subprocess; its stderr (JSON log lines) goes to a file."""
 
-    def __init__(self, config: Path, workdir: Path, *args: str,
-                 env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self, config: Path, workdir: Path, *args: str, env: dict[str, str] | None = None
+    ) -> None:
         self.log_path = workdir / f"agent-{time.monotonic_ns()}.log"
         self.out_path = self.log_path.with_suffix(".out")
         self._err = open(self.log_path, "w")  # noqa: SIM115 - closed in wait()
         self._out = open(self.out_path, "w")  # noqa: SIM115
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "silo_agent", "run", "--config", str(config), *args],
-            stdout=self._out, stderr=self._err, env={**os.environ, **(env or {})},
+            stdout=self._out,
+            stderr=self._err,
+            env={**os.environ, **(env or {})},
         )
 
     def signal(self, signum: int) -> None:

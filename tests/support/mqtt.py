@@ -64,10 +64,21 @@ def mqtt_config(broker: Broker, tmp_path: Path, **overrides) -> MqttConfig:
 def telemetry_factory(tmp_path: Path) -> Iterator[Callable[..., Telemetry]]:
     made: list[Telemetry] = []
 
-    def make(broker: Broker, *, cameras=("cam-a", "cam-b"), start=True,
-             expire_after_s: int | None = None, **overrides) -> Telemetry:
-        t = Telemetry(mqtt_config(broker, tmp_path, **overrides), SILO, list(cameras),
-                      version="9.9.9", expire_after_s=expire_after_s)
+    def make(
+        broker: Broker,
+        *,
+        cameras=("cam-a", "cam-b"),
+        start=True,
+        expire_after_s: int | None = None,
+        **overrides,
+    ) -> Telemetry:
+        t = Telemetry(
+            mqtt_config(broker, tmp_path, **overrides),
+            SILO,
+            list(cameras),
+            version="9.9.9",
+            expire_after_s=expire_after_s,
+        )
         if start:
             t.start()
         made.append(t)
@@ -101,8 +112,9 @@ def summary(scan_id: str = f"{SILO}-20261122T020000Z", **changes) -> dict:
     return out
 
 
-def realistic_heightmap(rows: int = 300, cols: int = 400, step: float = 0.02,
-                        seed: int = 0) -> HeightMap:
+def realistic_heightmap(
+    rows: int = 300, cols: int = 400, step: float = 0.02, seed: int = 0
+) -> HeightMap:
     """A cone with ripples and D455-like noise on an elliptic region, 70 % observed."""
     rng = np.random.default_rng(seed)
     ox, oy = -cols * step / 2, -rows * step / 2

@@ -78,9 +78,7 @@ class Broker:
             pwfile = self.dir / "passwd"
             pwfile.touch()
             for user, password in passwords.items():
-                subprocess.run(
-                    ["mosquitto_passwd", "-b", str(pwfile), user, password], check=True
-                )
+                subprocess.run(["mosquitto_passwd", "-b", str(pwfile), user, password], check=True)
             lines.append(f"password_file {pwfile}")
         if acl:
             aclfile = self.dir / "acl"
@@ -187,8 +185,12 @@ class Collector:
     def _on_message(self, client, userdata, msg) -> None:
         with self._cond:
             self.messages.append(
-                Received(msg.topic, bytes(msg.payload), bool(msg.retain),
-                         getattr(msg, "properties", None))
+                Received(
+                    msg.topic,
+                    bytes(msg.payload),
+                    bool(msg.retain),
+                    getattr(msg, "properties", None),
+                )
             )
             self._cond.notify_all()
 
@@ -227,21 +229,55 @@ def make_tls(directory: Path, key_password: str | None = None) -> TlsFiles:
         subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=directory)
 
     ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"]
-    run("req", "-x509", *ec, "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
-        "-subj", "/CN=silo-test-ca")
+    run(
+        "req",
+        "-x509",
+        *ec,
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=silo-test-ca",
+    )
     for name, subject, ext in (
         ("server", "/CN=127.0.0.1", "subjectAltName=IP:127.0.0.1,DNS:localhost"),
         ("client", "/CN=silo-agent-silo-t", "extendedKeyUsage=clientAuth"),
     ):
-        run("req", *ec, "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
-            "-subj", subject)
+        run("req", *ec, "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", subject)
         (directory / f"{name}.ext").write_text(ext + "\n")
-        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
-            "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext")
+        run(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            f"{name}.pem",
+            "-days",
+            "2",
+            "-extfile",
+            f"{name}.ext",
+        )
     client_key = directory / "client.key"
     if key_password is not None:
-        run("pkey", "-in", "client.key", "-aes256", "-passout", f"pass:{key_password}",
-            "-out", "client-encrypted.key")
+        run(
+            "pkey",
+            "-in",
+            "client.key",
+            "-aes256",
+            "-passout",
+            f"pass:{key_password}",
+            "-out",
+            "client-encrypted.key",
+        )
         client_key = directory / "client-encrypted.key"
     return TlsFiles(
         ca=directory / "ca.pem",
