@@ -10,7 +10,7 @@ letterbox padding is neutral), scored 1 when there are any, so it fires where th
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -219,3 +219,71 @@ def test_a_model_that_cannot_load_ends_the_session_naming_the_file(small_rig,
     payloads, reason = session_run(config_for(small_rig, broken), 1)
     assert payloads == []
     assert reason.startswith(f"cannot load the robot model: {broken}: cannot load the ONNX")
+
+
+def test_recordings_with_colour_give_it_aligned_only_on_the_maps_the_model_is_due(
+        small_rig, tmp_path: Path) -> None:  # fmt: skip
+    """Real librealsense playback of `.db3` files holding depth and colour: a frame asked
+    with colour carries the recorded image, one asked without carries none, and the model
+    finds the robot in them as in the simulator's frames."""
+    from silo_agent.capture.recording import write_recording
+    from silo_agent.live.session import open_source
+
+    times = (0.0, 0.5)
+    rendered = [small_rig.frames(t, i, color=True) for i, t in enumerate(times)]
+    for k, view in enumerate(small_rig.views):
+        write_recording(tmp_path / f"{view.serial}.db3", view.serial, view.intrinsics.to_json(),
+                        [per_time[k].depth for per_time in rendered], 0.001, 30,
+                        color_frames=[per_time[k].color for per_time in rendered])  # fmt: skip
+    sim = config_for(small_rig, build_robot_model(tmp_path / "robot.onnx"))
+    data = sim.model_dump(mode="json", exclude_none=True)
+    data["cameras"] = [{"serial": v.serial, "source": "playback", "color": True,
+                        "playback": str(tmp_path / f"{v.serial}.db3"),
+                        "extrinsic": v.nominal.tolist(), "timeout_s": 2.0,
+                        "spatial_filter": False} for v in small_rig.views]  # fmt: skip
+    config = parse_config(data, "test")
+    site = small_rig.robot.base.site
+    live = LiveMap(Grid.over(site.region, config.live.grid_step_m), config.live, site.ceiling_z)
+    model = LiveRobotModel(config)
+    source = open_source(config)
+    try:
+        plain = source.frames(times[0], color=False)
+        assert all(f.color is None for f in plain)
+        coloured = source.frames(times[1], color=True)
+    finally:
+        source.close()
+    for frame, recorded in zip(coloured, rendered[1], strict=True):
+        np.testing.assert_array_equal(frame.depth, recorded.depth)
+        # align maps colour through depth: none where it is 0, and at depth edges a pixel
+        # may take its neighbour's (0.07 % here)
+        valid = recorded.depth > 0
+        assert np.all(frame.color == recorded.color, axis=-1)[valid].mean() > 0.99
+    update = live.update(coloured, times[1], model.robots(coloured, live, times[1]))
+    robot = max(update.robots, key=lambda r: r.cells)  # the cameras' sightings merged
+    pose = small_rig.robot.pose(times[1])
+    assert robot.by == "model"
+    assert np.hypot(robot.x - pose.x, robot.y - pose.y) < 0.2
+
+
+def test_the_model_runs_at_most_model_rate_hz_and_maps_between_reuse_its_sightings(
+        small_rig, tmp_path: Path) -> None:  # fmt: skip
+    config = config_for(small_rig, build_robot_model(tmp_path / "robot.onnx"))
+    config = config.model_copy(update={"live": config.live.model_copy(
+        update={"model_rate_hz": 1.0})})  # fmt: skip
+    site = small_rig.robot.base.site
+    live = LiveMap(Grid.over(site.region, config.live.grid_step_m), config.live, site.ceiling_z)
+    model = LiveRobotModel(config)
+    frames = [DepthFrame(v.serial, f.depth, f.depth_unit_m, f.intrinsics.fx, f.intrinsics.fy,
+                         f.intrinsics.ppx, f.intrinsics.ppy, v.nominal, f.color)
+              for v, f in zip(small_rig.views, small_rig.frames(0.0, 0, color=True),
+                              strict=True)]  # fmt: skip
+    # the same frames with the robot painted the grain's colour: a run finds nothing there
+    wheat = np.array(small_rig.robot.base.grain.rgb, dtype=np.uint8)
+    no_robot = [replace(f, color=np.broadcast_to(wheat, f.color.shape).copy()) for f in frames]
+    assert model.due(0.0)
+    first = model.robots(frames, live, 0.0)
+    assert first
+    assert not model.due(0.9)
+    assert model.robots(no_robot, live, 0.9) == first  # not run: the last sightings
+    assert model.due(1.0)
+    assert model.robots(no_robot, live, 1.0) == []  # run, and the robot is gone
