@@ -565,6 +565,10 @@ class LiveConfig(Strict):
     robot_margin_m: float = Field(
         default=0.15, ge=0, description="kept out of the map around the robot's footprint"
     )
+    model_rate_hz: float = Field(
+        default=1.0, gt=0, le=10,
+        description="runs per second, at most, of [detection.onnx]'s model on the colour frames",
+    )
     qos: Literal[0, 1] = 0
 
 

@@ -16,13 +16,16 @@ pass over the newest frame of each camera:
   `robot_min_height_m` above the local surface (a morphological top-hat wider than the robot,
   grain never rising more steeply than its angle of repose); its cells and the disc of
   `robot_radius_m` around their centre (a robot on a slope shows less than its whole top), plus
-  `robot_margin_m`, are held at their last good value and marked in the `held` layer;
+  `robot_margin_m`, are held at their last good value and marked in the `held` layer; a
+  site's YOLO model (live/model.py) adds its robot boxes, placed through the depth under them
+  (`sighting_of`), and a model sighting alone holds its disc as a depth one does;
 - `changed` marks the cells more than `change_m` from the value they had when last reported
   changed, so a slow drift is reported once it adds up, not lost under the threshold.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +59,7 @@ class DepthFrame:
     ppx: float
     ppy: float
     extrinsic: np.ndarray  # 4x4 camera -> silo
+    color: np.ndarray | None = None  # (h, w, 3) uint8 RGB aligned to depth (any size), if any
 
 
 @dataclass(frozen=True)
@@ -67,10 +71,12 @@ class RobotSighting:
     top_z: float
     radius_m: float  # of the disc around its cells, margin not included
     cells: int
+    by: str = "depth"  # which detectors saw it: "depth", "model" or "depth+model"
 
     def to_json(self) -> dict[str, Any]:
         return {"x": round(self.x, 3), "y": round(self.y, 3), "top_z": round(self.top_z, 3),
-                "radius_m": round(self.radius_m, 3), "cells": self.cells}  # fmt: skip
+                "radius_m": round(self.radius_m, 3), "cells": self.cells,
+                "by": self.by}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -118,7 +124,8 @@ def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSightin
         y = (big.y * big.cells + part.y * part.cells) / n
         reach = max(np.hypot(big.x - x, big.y - y) + big.radius_m,
                     np.hypot(part.x - x, part.y - y) + part.radius_m)
-        out[near] = RobotSighting(x, y, max(big.top_z, part.top_z), float(reach), n)
+        by = "+".join(sorted(set(big.by.split("+")) | set(part.by.split("+"))))
+        out[near] = RobotSighting(x, y, max(big.top_z, part.top_z), float(reach), n, by)
     return out
 
 
@@ -254,6 +261,36 @@ class LiveMap:
                                    float(radius[i - 1]), int(count[i - 1])) for i in ids]
         return cells, merged(sightings, 2 * self.settings.robot_radius_m)
 
+    def sighting_of(self, frame: DepthFrame, box: tuple[float, float, float, float],
+                    ) -> RobotSighting | None:  # fmt: skip
+        """A model's robot box (x1, y1, x2, y2 in `frame.color` pixels) in the silo frame: the
+        depth points of the box's central half (a robot fills the middle of its box; the
+        corners see the grain beside it) give its centre (median x, y) and top (the 90th
+        percentile z: the single highest points are depth noise);
+        its reach is the box's half diagonal at their median depth. None: no depth there."""
+        assert frame.color is not None  # a box comes from the colour image
+        height, width = frame.depth.shape
+        sx, sy = width / frame.color.shape[1], height / frame.color.shape[0]
+        x1, y1, x2, y2 = box[0] * sx, box[1] * sy, box[2] * sx, box[3] * sy
+        qw, qh = (x2 - x1) / 4, (y2 - y1) / 4
+        u0, u1 = max(int(np.floor(x1 + qw)), 0), min(int(np.ceil(x2 - qw)), width)
+        v0, v1 = max(int(np.floor(y1 + qh)), 0), min(int(np.ceil(y2 - qh)), height)
+        v, u = np.nonzero(frame.depth[v0:v1, u0:u1])
+        if len(v) == 0:
+            return None
+        z_cam = frame.depth[v + v0, u + u0] * frame.depth_unit_m
+        camera = np.column_stack([(u + u0 - frame.ppx) / frame.fx * z_cam,
+                                  (v + v0 - frame.ppy) / frame.fy * z_cam, z_cam])  # fmt: skip
+        extrinsic = np.asarray(frame.extrinsic, dtype=np.float64)
+        silo = camera @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+        depth = float(np.median(z_cam))
+        reach = np.hypot((x2 - x1) / frame.fx, (y2 - y1) / frame.fy) * depth / 2
+        row, col = self.grid.cell_index(silo[:, 0], silo[:, 1])
+        cells = len(np.unique(row * self.grid.shape[1] + col))
+        return RobotSighting(float(np.median(silo[:, 0])), float(np.median(silo[:, 1])),
+                             float(np.percentile(silo[:, 2], 90)), float(reach), cells,
+                             "model")  # fmt: skip
+
     # ------------------------------------------------------------ update
 
     def _filled(self) -> np.ndarray:
@@ -273,9 +310,10 @@ class LiveMap:
             self._nearest = (n_known, tuple(table))
         return np.where(known, self.height, self.height[self._nearest[1]])
 
-    def update(self, frames: list[DepthFrame], now_s: float) -> LiveUpdate:
+    def update(self, frames: list[DepthFrame], now_s: float,
+               seen: Sequence[RobotSighting] = ()) -> LiveUpdate:  # fmt: skip
         """Fold the newest frames, taken at `now_s` (any clock in seconds), into the cells and
-        make the next map."""
+        make the next map; `seen`, the model's robot sightings, are held as the depth ones."""
         s = self.settings
         frame, count = self.frame_heights(frames)
         # a lone sparse cell at the edge of a shadow holds points depth noise carried past the
@@ -285,6 +323,8 @@ class LiveMap:
         frame = np.where(measured, frame, np.nan)
         surface = np.where(measured, frame, self._filled())
         robot_cells, robots = self.find_robots(surface, measured)
+        if seen:
+            robots = merged([*robots, *seen], 2 * s.robot_radius_m)
         margin = int(np.ceil(s.robot_margin_m / self.grid.step))
         held = robot_cells
         if margin and robot_cells.any():

@@ -6,6 +6,9 @@ each camera through the configured post-processing chain without librealsense's 
 filter: it blends successive frames, which over a moving robot smears it into the grain; the
 live map's per-cell running value does the temporal part and knows when a cell really changed.
 
+A camera configured with `color = true` streams colour too; a map the YOLO model is due for
+aligns it to the depth frame (librealsense's align, only then: it costs a pass over the image).
+
 The rays assume no lens distortion, as the D455's depth stream reports none (capture/realsense
 undistorts for the full scan all the same).
 """
@@ -19,7 +22,7 @@ import numpy as np
 import pyrealsense2 as rs
 
 from silo_agent.capture import CaptureError
-from silo_agent.capture.realsense import RealSenseCamera, _configure, _DeviceFault
+from silo_agent.capture.realsense import RealSenseCamera, _configure, _DeviceFault, _rgb
 from silo_agent.config import Config
 from silo_agent.live.map import DepthFrame
 
@@ -29,7 +32,8 @@ class RealSenseFrameSource:
 
     def __init__(self, config: Config, serials: list[str]) -> None:
         self._stack = contextlib.ExitStack()
-        self._streams: list[tuple[RealSenseCamera, rs.pipeline, list[rs.filter], np.ndarray]] = []
+        self._streams: list[tuple[RealSenseCamera, rs.pipeline, list[rs.filter],
+                                  rs.align | None]] = []  # fmt: skip
         try:
             for cam in (c for c in config.cameras if c.serial in serials):
                 camera = RealSenseCamera(cam, config)  # CaptureError: no extrinsic, no file
@@ -41,20 +45,22 @@ class RealSenseFrameSource:
                 except (RuntimeError, _DeviceFault) as exc:
                     raise CaptureError(f"camera {cam.serial}: {exc}") from None
                 chain = [f for f in camera._filters() if not f.is_temporal_filter()]
-                self._streams.append((camera, pipe, chain, camera._extrinsic))
+                align = rs.align(rs.stream.depth) if cam.color else None
+                self._streams.append((camera, pipe, chain, align))
         except BaseException:
             self._stack.close()
             raise
 
-    def frames(self, elapsed_s: float) -> list[DepthFrame]:
-        """The newest depth frame of every camera, filtered. CaptureError names a camera that
-        gave none within its timeout_s (unplugged, or its recording ended)."""
-        return [self._newest(camera, pipe, chain, extrinsic)
-                for camera, pipe, chain, extrinsic in self._streams]  # fmt: skip
+    def frames(self, elapsed_s: float, color: bool = False) -> list[DepthFrame]:
+        """The newest depth frame of every camera, filtered, with its colour aligned to it when
+        `color` and the camera streams colour. CaptureError names a camera that gave none
+        within its timeout_s (unplugged, or its recording ended)."""
+        return [self._newest(camera, pipe, chain, align if color else None)
+                for camera, pipe, chain, align in self._streams]  # fmt: skip
 
     @staticmethod
     def _newest(camera: RealSenseCamera, pipe: rs.pipeline, chain: list[rs.filter],
-                extrinsic: np.ndarray) -> DepthFrame:  # fmt: skip
+                align: rs.align | None) -> DepthFrame:  # fmt: skip
         timeout_s = camera._camera.timeout_s
         deadline = time.monotonic() + timeout_s
         try:
@@ -66,12 +72,16 @@ class RealSenseFrameSource:
                     raise CaptureError(f"camera {camera.serial}: no depth frame within "
                                        f"{timeout_s:g} s (unplugged, or the recording ended)")
                 depth = frameset.get_depth_frame()  # the syncer may hand over colour alone
+            rgb = None
+            if align is not None:
+                colour = align.process(frameset).get_color_frame()
+                rgb = _rgb(colour) if colour else None
             for step in chain:
                 depth = step.process(depth)
             intr = depth.get_profile().as_video_stream_profile().get_intrinsics()
             return DepthFrame(camera.serial, np.asanyarray(depth.get_data()).copy(),
                               depth.as_depth_frame().get_units(), intr.fx, intr.fy, intr.ppx,
-                              intr.ppy, extrinsic)  # fmt: skip
+                              intr.ppy, camera._extrinsic, rgb)  # fmt: skip
         except RuntimeError as exc:  # librealsense reports USB trouble from any call
             raise CaptureError(f"camera {camera.serial}: {exc}") from None
 

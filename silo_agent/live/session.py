@@ -1,6 +1,8 @@
 """A live session: capture the newest frames, update the live map, publish, at most `rate_hz`.
 
-The session runs in its own thread. The agent suspends it while a full scan has the cameras
+The session runs in its own thread. With a YOLO model configured (`[detection.onnx]`), the maps
+it is due for bring colour frames, and its robot sightings are held with the depth ones
+(live/model.py). The agent suspends it while a full scan has the cameras
 and resumes it afterwards; the map's state, the sequence numbers and the deadline carry over
 (the deadline is wall time: a scan in between counts against `duration_s`).
 """
@@ -19,8 +21,10 @@ import structlog
 
 from silo_agent.capture import CaptureError
 from silo_agent.config import Config
+from silo_agent.detect.piles import ModelError
 from silo_agent.heightmap import HeightMap
 from silo_agent.live.map import DepthFrame, LiveMap
+from silo_agent.live.model import LiveRobotModel
 from silo_agent.reconstruct.grid import Grid
 from silo_agent.telemetry.heightmap_codec import encode_live_heightmap
 
@@ -30,8 +34,9 @@ SIM_MESH_STEP_M = 0.03  # the moving world is rebuilt every frame: coarse enough
 
 
 class FrameSource(Protocol):
-    def frames(self, elapsed_s: float) -> list[DepthFrame]:
-        """The newest depth frame of every camera. Raises CaptureError."""
+    def frames(self, elapsed_s: float, color: bool = False) -> list[DepthFrame]:
+        """The newest depth frame of every camera, with its aligned colour image when `color`
+        and the camera streams colour. Raises CaptureError."""
         ...
 
     def close(self) -> None: ...
@@ -53,14 +58,17 @@ class SimFrameSource:
                              seed=config.simulation.seed, width=cameras[0].width,
                              height=cameras[0].height, mesh_step=SIM_MESH_STEP_M)  # fmt: skip
         self._serials = [c.serial for c in cameras]
+        self._colored = [c.color for c in cameras]
         self._count = 0
 
-    def frames(self, elapsed_s: float) -> list[DepthFrame]:
+    def frames(self, elapsed_s: float, color: bool = False) -> list[DepthFrame]:
         self._count += 1
+        rendered = self._rig.frames(elapsed_s, self._count, color and any(self._colored))
         return [DepthFrame(serial, f.depth, f.depth_unit_m, f.intrinsics.fx, f.intrinsics.fy,
-                           f.intrinsics.ppx, f.intrinsics.ppy, view.nominal)
-                for serial, view, f in zip(self._serials, self._rig.views,
-                                           self._rig.frames(elapsed_s, self._count), strict=True)]
+                           f.intrinsics.ppx, f.intrinsics.ppy, view.nominal,
+                           f.color if colored else None)
+                for serial, colored, view, f in zip(self._serials, self._colored,
+                                                    self._rig.views, rendered, strict=True)]
 
     def close(self) -> None:
         """Nothing to release."""
@@ -105,6 +113,7 @@ class LiveSession:
         self._publish = publish
         self._on_end = on_end
         self._source: FrameSource | None = None  # open while capturing
+        self._model: LiveRobotModel | None = None  # loaded at the first start
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._ended = False
@@ -160,7 +169,13 @@ class LiveSession:
         except CaptureError as exc:
             self._end(f"cannot capture: {exc}")
             return
-        source = self._source
+        if self._model is None and LiveRobotModel.wanted(self.config):
+            try:
+                self._model = LiveRobotModel(self.config)
+            except ModelError as exc:
+                self._end(f"cannot load the robot model: {exc}")
+                return
+        source, model = self._source, self._model
         sent = -np.inf
         while not self._stop.is_set():
             began = time.monotonic()
@@ -169,7 +184,10 @@ class LiveSession:
                 self._end("duration reached")
                 return
             try:
-                update = self.map.update(source.frames(began - self.started), began)
+                color = model is not None and model.due(began)
+                frames = source.frames(began - self.started, color)
+                seen = model.robots(frames, self.map, began) if model is not None else []
+                update = self.map.update(frames, began, seen)
                 meta = {
                     "time": taken.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),  # of the frames
                     "rate_hz": self.rate_hz,

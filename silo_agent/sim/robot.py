@@ -173,8 +173,10 @@ class RobotRig:
             for v in views
         ]
 
-    def frames(self, t: float, index: int = 0) -> list[Frame]:
-        """Every camera's frame at time t (`index` numbers the frame for its noise draw)."""
+    def frames(self, t: float, index: int = 0, color: bool = False) -> list[Frame]:
+        """Every camera's frame at time t (`index` numbers the frame for its noise draw), with
+        the colour image aligned to depth when `color` (the grain's, the robot grey)."""
         raycaster = Raycaster(self.robot.world(t, self.mesh_step))
-        return [expose(trace(raycaster, v.true, v.intrinsics), self.noise,
+        rgb = self.robot.base.grain.rgb if color else None
+        return [expose(trace(raycaster, v.true, v.intrinsics, rgb), self.noise,
                        rng_for(self.seed, v.key, _NOISE_STREAM, index)) for v in self.views]
