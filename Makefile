@@ -32,6 +32,7 @@ demo: system-deps $(STAMP)
 
 test: system-deps $(STAMP)
 	$(VENV)/bin/ruff check silo_agent tests bench
+	$(VENV)/bin/ruff format --check silo_agent tests bench
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
 

@@ -167,7 +167,8 @@ class DetectionConfig(Strict):
     )
     min_separation_m: float = Field(default=0.3, gt=0, description="closer peaks are one pile")
     background_m: float | None = Field(
-        default=None, gt=0,
+        default=None,
+        gt=0,
         description="piles on a local background (opening of this width) instead of the base",
     )
     match_distance_m: float = Field(
@@ -214,8 +215,10 @@ class CameraConfig(Strict):
     )
     retries: int = Field(default=2, ge=0, description="live: hardware resets + retries on failure")
     reset_wait_s: float = Field(
-        default=20.0, gt=0, le=MAX_DURATION_S,
-        description="live: how long to wait for re-enumeration after a reset"
+        default=20.0,
+        gt=0,
+        le=MAX_DURATION_S,
+        description="live: how long to wait for re-enumeration after a reset",
     )
     imu_samples: int = Field(default=50, ge=1, description="accelerometer samples averaged")
     gravity_tolerance_deg: float = Field(
@@ -270,7 +273,9 @@ class SimulationConfig(Strict):
         default=False, description="new sensor noise every scan, as a real camera gives"
     )
     capture_s: float = Field(
-        default=0.0, ge=0, le=600,
+        default=0.0,
+        ge=0,
+        le=600,
         description="seconds each camera's capture takes (a D455's warm-up and frames: ~1.5 s)",
     )
     grain: Grain = DEFAULT_GRAIN
@@ -358,15 +363,19 @@ class ScheduleConfig(Strict):
     cron: str | None = Field(default=None, description="crontab line, in silo.timezone")
     scan_at_start: bool = True
     misfire_grace_s: float = Field(
-        default=300, gt=0, le=MAX_DURATION_S,
-        description="a scan due this long ago (machine asleep) still runs"
+        default=300,
+        gt=0,
+        le=MAX_DURATION_S,
+        description="a scan due this long ago (machine asleep) still runs",
     )
     scan_timeout_s: float = Field(
         default=600, gt=0, le=MAX_DURATION_S, description="overall deadline of one scan"
     )
     stop_timeout_s: float = Field(
-        default=30, ge=0, le=MAX_DURATION_S,
-        description="on SIGTERM, how long a running scan may finish"
+        default=30,
+        ge=0,
+        le=MAX_DURATION_S,
+        description="on SIGTERM, how long a running scan may finish",
     )
 
     @field_validator("cron")
@@ -427,7 +436,8 @@ class AlarmsConfig(Strict):
         default=5.0, gt=0, description="a drop must also exceed k x the maps' noise sigma"
     )
     baseline_scan_id: str | None = Field(
-        default=None, pattern=r"^[A-Za-z0-9_.-]+$",
+        default=None,
+        pattern=r"^[A-Za-z0-9_.-]+$",
         description="pin the collapse baseline to this cached scan; default the last valid scan",
     )
     high_level_margin_m: float | None = Field(
@@ -439,7 +449,9 @@ class AlarmsConfig(Strict):
     )
     min_coverage: float = Field(default=0.30, ge=0, le=1, description="coverage fault below")
     hysteresis: float = Field(
-        default=0.5, gt=0, lt=1,
+        default=0.5,
+        gt=0,
+        lt=1,
         description="an active alarm clears only when its measure falls below this share "
         "of the raise threshold (level: this share of the margin further away)",
     )
@@ -566,7 +578,9 @@ class LiveConfig(Strict):
         default=0.15, ge=0, description="kept out of the map around the robot's footprint"
     )
     model_rate_hz: float = Field(
-        default=1.0, gt=0, le=10,
+        default=1.0,
+        gt=0,
+        le=10,
         description="runs per second, at most, of [detection.onnx]'s model on the colour frames",
     )
     qos: Literal[0, 1] = 0
@@ -595,8 +609,11 @@ class Config(Strict):
                 "config_key",
                 "the region at this step is {cells} cells, more than the limit of {limit}; "
                 "use a coarser grid_step_m",
-                {"key": "reconstruction.grid_step_m", "cells": f"{cells:,}",
-                 "limit": f"{MAX_GRID_CELLS:,}"},
+                {
+                    "key": "reconstruction.grid_step_m",
+                    "cells": f"{cells:,}",
+                    "limit": f"{MAX_GRID_CELLS:,}",
+                },
             )
         return self
 
@@ -615,8 +632,11 @@ class Config(Strict):
                         "config_key",
                         "unknown camera serial '{serial}', expected the serial of one of the "
                         "[[cameras]] ({known})",
-                        {"key": f"calibration.spacing.{k}.{key}", "serial": serial,
-                         "known": ", ".join(serials)},
+                        {
+                            "key": f"calibration.spacing.{k}.{key}",
+                            "serial": serial,
+                            "known": ", ".join(serials),
+                        },
                     )
         for k, serial in enumerate(self.live.cameras or []):
             if serial not in known:
@@ -697,8 +717,10 @@ def environment_problems(config: Config) -> list[str]:
     """`key: problem` for what the config points at and the agent could not use: directories
     it writes, files it reads. Checked at start and by check-config, not on every parse."""
     problems = []
-    for key, directory in (("audit.directory", config.audit.directory),
-                           ("mqtt.outbox_path", config.mqtt.outbox_path.parent)):
+    for key, directory in (
+        ("audit.directory", config.audit.directory),
+        ("mqtt.outbox_path", config.mqtt.outbox_path.parent),
+    ):
         problem = _writable_directory_problem(Path(directory))
         if problem:
             problems.append(f"{key}: {problem}")
@@ -708,9 +730,14 @@ def environment_problems(config: Config) -> list[str]:
     files = {"mqtt.password_file": config.mqtt.password_file}
     if config.mqtt.tls is not None:
         tls = config.mqtt.tls
-        files.update({"mqtt.tls.ca_file": tls.ca_file, "mqtt.tls.cert_file": tls.cert_file,
-                      "mqtt.tls.key_file": tls.key_file,
-                      "mqtt.tls.key_password_file": tls.key_password_file})
+        files.update(
+            {
+                "mqtt.tls.ca_file": tls.ca_file,
+                "mqtt.tls.cert_file": tls.cert_file,
+                "mqtt.tls.key_file": tls.key_file,
+                "mqtt.tls.key_password_file": tls.key_password_file,
+            }
+        )
     for key, path in files.items():
         problem = _readable_file_problem(path) if path is not None else None
         if problem:
@@ -728,8 +755,10 @@ def config_warnings(config: Config) -> list[str]:
 
         trigger = CronTrigger.from_crontab(config.schedule.cron, timezone=config.silo.timezone)
         if trigger.get_next_fire_time(None, datetime.now(UTC)) is None:
-            warnings.append(f"schedule.cron: {config.schedule.cron!r} never fires "
-                            "(no such date); only scan_at_start, interval_s and requests scan")
+            warnings.append(
+                f"schedule.cron: {config.schedule.cron!r} never fires "
+                "(no such date); only scan_at_start, interval_s and requests scan"
+            )
     return warnings
 
 
@@ -745,8 +774,10 @@ def load_config(path: str | Path, *, service: bool = False) -> Config:
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset "
-                          f"{exc.start} ({exc.reason})") from None
+        raise ConfigError(
+            f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset "
+            f"{exc.start} ({exc.reason})"
+        ) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

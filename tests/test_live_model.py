@@ -61,12 +61,13 @@ def build_robot_model(path: Path) -> Path:
         helper.make_node("Mul", ["y_sum", "half"], ["cy"]),
         helper.make_node("Sub", ["x2", "x1"], ["w"]),
         helper.make_node("Sub", ["y2", "y1"], ["h"]),
-        *[helper.make_node("Reshape", [name, "one_shape"], [f"{name}_1"])
-          for name in ("cx", "cy", "w", "h", "score")],
-        helper.make_node("Concat", ["cx_1", "cy_1", "w_1", "h_1", "score_1"], ["column"],
-                         axis=0),
+        *[
+            helper.make_node("Reshape", [name, "one_shape"], [f"{name}_1"])
+            for name in ("cx", "cy", "w", "h", "score")
+        ],
+        helper.make_node("Concat", ["cx_1", "cy_1", "w_1", "h_1", "score_1"], ["column"], axis=0),
         helper.make_node("Reshape", ["column", "out_shape"], ["output0"]),
-    ]  # fmt: skip
+    ]
     inits = [
         const("red_index", TensorProto.INT64, [1], [0]),
         const("blue_index", TensorProto.INT64, [1], [2]),
@@ -81,11 +82,12 @@ def build_robot_model(path: Path) -> Path:
         const("out_shape", TensorProto.INT64, [3], [1, 5, 1]),
     ]
     graph = helper.make_graph(
-        nodes, "robot-test",
+        nodes,
+        "robot-test",
         [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, IMGSZ, IMGSZ])],
         [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, 5, 1])],
         inits,
-    )  # fmt: skip
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     helper.set_model_props(model, {"imgsz": f"[{IMGSZ}, {IMGSZ}]", "names": repr({0: "robot"})})
@@ -98,11 +100,19 @@ def config_for(rig: RobotRig, model: Path | None) -> Config:
     site = rig.robot.base.site
     data = {
         "silo": {"id": "live-model", "region": site.region.tolist(), "ceiling_z": site.ceiling_z},
-        "cameras": [{"serial": v.serial, "source": "sim", "view": v.key, "color": True,
-                     "width": v.intrinsics.width, "height": v.intrinsics.height}
-                    for v in rig.views],
+        "cameras": [
+            {
+                "serial": v.serial,
+                "source": "sim",
+                "view": v.key,
+                "color": True,
+                "width": v.intrinsics.width,
+                "height": v.intrinsics.height,
+            }
+            for v in rig.views
+        ],
         "live": {"robot_min_height_m": BLIND_DEPTH_M, "model_rate_hz": 10},
-    }  # fmt: skip
+    }
     if model is not None:
         data["detection"] = {"onnx": {"model": str(model)}}
     return parse_config(data, "test")
@@ -131,14 +141,31 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Grid, list[Step]]:
     steps = []
     for index, t in enumerate(TIMES):
         rendered = rig.frames(t, index, color=True)
-        frames = [DepthFrame(v.serial, f.depth, f.depth_unit_m, f.intrinsics.fx,
-                             f.intrinsics.fy, f.intrinsics.ppx, f.intrinsics.ppy, v.nominal,
-                             f.color)
-                  for v, f in zip(rig.views, rendered, strict=True)]  # fmt: skip
+        frames = [
+            DepthFrame(
+                v.serial,
+                f.depth,
+                f.depth_unit_m,
+                f.intrinsics.fx,
+                f.intrinsics.fy,
+                f.intrinsics.ppx,
+                f.intrinsics.ppy,
+                v.nominal,
+                f.color,
+            )
+            for v, f in zip(rig.views, rendered, strict=True)
+        ]
         seen = model.robots(frames, with_model, t)
         truth = rig.robot.height(t)(xs, ys)
-        steps.append(Step(t, rig.robot.pose(t), truth, with_model.update(frames, t, seen),
-                          depth_only.update(frames, t)))  # fmt: skip
+        steps.append(
+            Step(
+                t,
+                rig.robot.pose(t),
+                truth,
+                with_model.update(frames, t, seen),
+                depth_only.update(frames, t),
+            )
+        )
     return grid, steps
 
 
@@ -204,7 +231,8 @@ def small_rig() -> RobotRig:
 
 
 def test_a_session_asks_sim_cameras_for_colour_and_publishes_the_model_robot(
-        small_rig, tmp_path: Path) -> None:  # fmt: skip
+    small_rig, tmp_path: Path
+) -> None:
     model = build_robot_model(tmp_path / "robot.onnx")
     payloads, _ = session_run(config_for(small_rig, model), 2)
     for payload in payloads:
@@ -212,8 +240,9 @@ def test_a_session_asks_sim_cameras_for_colour_and_publishes_the_model_robot(
         assert robots and max(robots, key=lambda r: r["cells"])["by"] == "model"
 
 
-def test_a_model_that_cannot_load_ends_the_session_naming_the_file(small_rig,
-                                                                   tmp_path: Path) -> None:
+def test_a_model_that_cannot_load_ends_the_session_naming_the_file(
+    small_rig, tmp_path: Path
+) -> None:
     broken = tmp_path / "broken.onnx"
     broken.write_bytes(b"not a model")
     payloads, reason = session_run(config_for(small_rig, broken), 1)
@@ -222,7 +251,8 @@ def test_a_model_that_cannot_load_ends_the_session_naming_the_file(small_rig,
 
 
 def test_recordings_with_colour_give_it_aligned_only_on_the_maps_the_model_is_due(
-        small_rig, tmp_path: Path) -> None:  # fmt: skip
+    small_rig, tmp_path: Path
+) -> None:
     """Real librealsense playback of `.db3` files holding depth and colour: a frame asked
     with colour carries the recorded image, one asked without carries none, and the model
     finds the robot in them as in the simulator's frames."""
@@ -232,15 +262,29 @@ def test_recordings_with_colour_give_it_aligned_only_on_the_maps_the_model_is_du
     times = (0.0, 0.5)
     rendered = [small_rig.frames(t, i, color=True) for i, t in enumerate(times)]
     for k, view in enumerate(small_rig.views):
-        write_recording(tmp_path / f"{view.serial}.db3", view.serial, view.intrinsics.to_json(),
-                        [per_time[k].depth for per_time in rendered], 0.001, 30,
-                        color_frames=[per_time[k].color for per_time in rendered])  # fmt: skip
+        write_recording(
+            tmp_path / f"{view.serial}.db3",
+            view.serial,
+            view.intrinsics.to_json(),
+            [per_time[k].depth for per_time in rendered],
+            0.001,
+            30,
+            color_frames=[per_time[k].color for per_time in rendered],
+        )
     sim = config_for(small_rig, build_robot_model(tmp_path / "robot.onnx"))
     data = sim.model_dump(mode="json", exclude_none=True)
-    data["cameras"] = [{"serial": v.serial, "source": "playback", "color": True,
-                        "playback": str(tmp_path / f"{v.serial}.db3"),
-                        "extrinsic": v.nominal.tolist(), "timeout_s": 2.0,
-                        "spatial_filter": False} for v in small_rig.views]  # fmt: skip
+    data["cameras"] = [
+        {
+            "serial": v.serial,
+            "source": "playback",
+            "color": True,
+            "playback": str(tmp_path / f"{v.serial}.db3"),
+            "extrinsic": v.nominal.tolist(),
+            "timeout_s": 2.0,
+            "spatial_filter": False,
+        }
+        for v in small_rig.views
+    ]
     config = parse_config(data, "test")
     site = small_rig.robot.base.site
     live = LiveMap(Grid.over(site.region, config.live.grid_step_m), config.live, site.ceiling_z)
@@ -266,17 +310,29 @@ def test_recordings_with_colour_give_it_aligned_only_on_the_maps_the_model_is_du
 
 
 def test_the_model_runs_at_most_model_rate_hz_and_maps_between_reuse_its_sightings(
-        small_rig, tmp_path: Path) -> None:  # fmt: skip
+    small_rig, tmp_path: Path
+) -> None:
     config = config_for(small_rig, build_robot_model(tmp_path / "robot.onnx"))
-    config = config.model_copy(update={"live": config.live.model_copy(
-        update={"model_rate_hz": 1.0})})  # fmt: skip
+    config = config.model_copy(
+        update={"live": config.live.model_copy(update={"model_rate_hz": 1.0})}
+    )
     site = small_rig.robot.base.site
     live = LiveMap(Grid.over(site.region, config.live.grid_step_m), config.live, site.ceiling_z)
     model = LiveRobotModel(config)
-    frames = [DepthFrame(v.serial, f.depth, f.depth_unit_m, f.intrinsics.fx, f.intrinsics.fy,
-                         f.intrinsics.ppx, f.intrinsics.ppy, v.nominal, f.color)
-              for v, f in zip(small_rig.views, small_rig.frames(0.0, 0, color=True),
-                              strict=True)]  # fmt: skip
+    frames = [
+        DepthFrame(
+            v.serial,
+            f.depth,
+            f.depth_unit_m,
+            f.intrinsics.fx,
+            f.intrinsics.fy,
+            f.intrinsics.ppx,
+            f.intrinsics.ppy,
+            v.nominal,
+            f.color,
+        )
+        for v, f in zip(small_rig.views, small_rig.frames(0.0, 0, color=True), strict=True)
+    ]
     # the same frames with the robot painted the grain's colour: a run finds nothing there
     wheat = np.array(small_rig.robot.base.grain.rgb, dtype=np.uint8)
     no_robot = [replace(f, color=np.broadcast_to(wheat, f.color.shape).copy()) for f in frames]

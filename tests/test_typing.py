@@ -32,6 +32,16 @@ def test_make_test_runs_mypy_before_the_suite() -> None:
     assert mypy[0] < pytest[0], "a type error must stop make test before the suite runs"
 
 
+def test_make_test_checks_the_format_before_the_suite() -> None:
+    recipe = _recipe((ROOT / "Makefile").read_text(encoding="utf-8"), "test")
+    check = [i for i, line in enumerate(recipe) if "ruff format --check" in line]
+    pytest = [i for i, line in enumerate(recipe) if "pytest" in line]
+    assert check and pytest, recipe
+    assert check[0] < pytest[0]
+    for tree in ("silo_agent", "tests", "bench"):
+        assert tree in recipe[check[0]].split()
+
+
 def test_mypy_checks_the_package_and_silences_only_untyped_libraries() -> None:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     mypy = project["tool"]["mypy"]

@@ -74,9 +74,14 @@ class RobotSighting:
     by: str = "depth"  # which detectors saw it: "depth", "model" or "depth+model"
 
     def to_json(self) -> dict[str, Any]:
-        return {"x": round(self.x, 3), "y": round(self.y, 3), "top_z": round(self.top_z, 3),
-                "radius_m": round(self.radius_m, 3), "cells": self.cells,
-                "by": self.by}  # fmt: skip
+        return {
+            "x": round(self.x, 3),
+            "y": round(self.y, 3),
+            "top_z": round(self.top_z, 3),
+            "radius_m": round(self.radius_m, 3),
+            "cells": self.cells,
+            "by": self.by,
+        }
 
 
 @dataclass(frozen=True)
@@ -113,8 +118,9 @@ def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSightin
     centres are closer than `within_m` join, weighted by their cells."""
     out: list[RobotSighting] = []
     for part in sorted(sightings, key=lambda r: -r.cells):  # a few per map
-        near = next((k for k, r in enumerate(out)
-                     if np.hypot(r.x - part.x, r.y - part.y) < within_m), None)  # fmt: skip
+        near = next(
+            (k for k, r in enumerate(out) if np.hypot(r.x - part.x, r.y - part.y) < within_m), None
+        )
         if near is None:
             out.append(part)
             continue
@@ -122,8 +128,10 @@ def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSightin
         n = big.cells + part.cells
         x = (big.x * big.cells + part.x * part.cells) / n
         y = (big.y * big.cells + part.y * part.cells) / n
-        reach = max(np.hypot(big.x - x, big.y - y) + big.radius_m,
-                    np.hypot(part.x - x, part.y - y) + part.radius_m)
+        reach = max(
+            np.hypot(big.x - x, big.y - y) + big.radius_m,
+            np.hypot(part.x - x, part.y - y) + part.radius_m,
+        )
         by = "+".join(sorted(set(big.by.split("+")) | set(part.by.split("+"))))
         out[near] = RobotSighting(x, y, max(big.top_z, part.top_z), float(reach), n, by)
     return out
@@ -136,21 +144,34 @@ class _Rays:
         h, w = frame.depth.shape
         v, u = np.mgrid[0:h:decimation, 0:w:decimation]
         rotation = np.asarray(frame.extrinsic, dtype=np.float64)[:3, :3]
-        camera = np.stack([(u - frame.ppx) / frame.fx, (v - frame.ppy) / frame.fy,
-                           np.ones(u.shape)], axis=-1).reshape(-1, 3)
+        camera = np.stack(
+            [(u - frame.ppx) / frame.fx, (v - frame.ppy) / frame.fy, np.ones(u.shape)], axis=-1
+        ).reshape(-1, 3)
         silo = camera @ rotation.T
-        self.x, self.y, self.z = (np.ascontiguousarray(silo[:, k], dtype=np.float32)
-                                  for k in range(3))
+        self.x, self.y, self.z = (
+            np.ascontiguousarray(silo[:, k], dtype=np.float32) for k in range(3)
+        )
         self.origin = np.asarray(frame.extrinsic, dtype=np.float32)[:3, 3]
-        self.key = (frame.depth.shape, frame.fx, frame.fy, frame.ppx, frame.ppy,
-                    np.asarray(frame.extrinsic).tobytes())
+        self.key = (
+            frame.depth.shape,
+            frame.fx,
+            frame.fy,
+            frame.ppx,
+            frame.ppy,
+            np.asarray(frame.extrinsic).tobytes(),
+        )
 
 
 class LiveMap:
     """Per-cell state of one live session over `grid`; `update(frames)` makes the next map."""
 
-    def __init__(self, grid: Grid, settings: LiveConfig, ceiling_z: float | None = None,
-                 start: HeightMap | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        grid: Grid,
+        settings: LiveConfig,
+        ceiling_z: float | None = None,
+        start: HeightMap | None = None,
+    ) -> None:
         """`start`, the last full scan's map on the same grid, gives cells not yet seen live a
         value; without it they take their nearest seen cell's."""
         self.grid = grid
@@ -159,7 +180,10 @@ class LiveMap:
         self.region = grid.inside > 0
         self.height = np.full(grid.shape, np.nan)
         if start is not None and (start.heights.shape, start.step, start.origin) == (
-                grid.shape, grid.step, grid.origin):
+            grid.shape,
+            grid.step,
+            grid.origin,
+        ):
             self.height = np.where(self.region, start.heights, np.nan).astype(np.float64)
         self.seen = np.zeros(grid.shape, dtype=bool)
         self.reported = np.full(grid.shape, np.nan)
@@ -181,8 +205,14 @@ class LiveMap:
 
     def _rays_of(self, frame: DepthFrame) -> _Rays:
         rays = self._rays.get(frame.serial)
-        key = (frame.depth.shape, frame.fx, frame.fy, frame.ppx, frame.ppy,
-               np.asarray(frame.extrinsic).tobytes())
+        key = (
+            frame.depth.shape,
+            frame.fx,
+            frame.fy,
+            frame.ppx,
+            frame.ppy,
+            np.asarray(frame.extrinsic).tobytes(),
+        )
         if rays is None or rays.key != key:
             rays = self._rays[frame.serial] = _Rays(frame, self.settings.decimation)
         return rays
@@ -220,15 +250,19 @@ class LiveMap:
 
     # ------------------------------------------------------------ robot
 
-    def find_robots(self, surface: np.ndarray, measured: np.ndarray,
-                    ) -> tuple[np.ndarray, list[RobotSighting]]:  # fmt: skip
+    def find_robots(
+        self,
+        surface: np.ndarray,
+        measured: np.ndarray,
+    ) -> tuple[np.ndarray, list[RobotSighting]]:
         """Cells of compact, steep-sided objects standing above the local surface."""
         settings, step = self.settings, self.grid.step
         work = surface
         holes = ~np.isfinite(surface)
         if holes.any():  # the first map: cells no frame has measured yet take their neighbour's
-            table = ndimage.distance_transform_edt(holes, return_distances=False,
-                                                   return_indices=True)  # fmt: skip
+            table = ndimage.distance_transform_edt(
+                holes, return_distances=False, return_indices=True
+            )
             work = surface[tuple(table)]
         window = max(3, int(np.ceil(ROBOT_TOPHAT_M / step)))
         tophat = work - ndimage.grey_opening(work, size=(window, window))
@@ -241,8 +275,11 @@ class LiveMap:
         count = sum_by_label(np.ones(labels.shape), labels, n)
         area = count * step * step
         steep_cells = sum_by_label(steep & raised, labels, n)
-        robot = ((steep_cells >= ROBOT_MIN_EDGE_M / step) & (area >= ROBOT_AREA_M2[0])
-                 & (area <= ROBOT_AREA_M2[1]))  # fmt: skip
+        robot = (
+            (steep_cells >= ROBOT_MIN_EDGE_M / step)
+            & (area >= ROBOT_AREA_M2[0])
+            & (area <= ROBOT_AREA_M2[1])
+        )
         if not robot.any():
             return np.zeros(self.grid.shape, dtype=bool), []
         keep = np.concatenate([[False], robot])
@@ -257,12 +294,23 @@ class LiveMap:
         top = sum_by_label(work, labels, n, top=True)
         spread = np.hypot(xs - centre_x[labels], ys - centre_y[labels])
         radius = sum_by_label(spread, edge, n, top=True) + step / 2
-        sightings = [RobotSighting(float(centre_x[i]), float(centre_y[i]), float(top[i - 1]),
-                                   float(radius[i - 1]), int(count[i - 1])) for i in ids]
+        sightings = [
+            RobotSighting(
+                float(centre_x[i]),
+                float(centre_y[i]),
+                float(top[i - 1]),
+                float(radius[i - 1]),
+                int(count[i - 1]),
+            )
+            for i in ids
+        ]
         return cells, merged(sightings, 2 * self.settings.robot_radius_m)
 
-    def sighting_of(self, frame: DepthFrame, box: tuple[float, float, float, float],
-                    ) -> RobotSighting | None:  # fmt: skip
+    def sighting_of(
+        self,
+        frame: DepthFrame,
+        box: tuple[float, float, float, float],
+    ) -> RobotSighting | None:
         """A model's robot box (x1, y1, x2, y2 in `frame.color` pixels) in the silo frame: the
         depth points of the box's central half (a robot fills the middle of its box; the
         corners see the grain beside it) give its centre (median x, y) and top (the 90th
@@ -279,17 +327,27 @@ class LiveMap:
         if len(v) == 0:
             return None
         z_cam = frame.depth[v + v0, u + u0] * frame.depth_unit_m
-        camera = np.column_stack([(u + u0 - frame.ppx) / frame.fx * z_cam,
-                                  (v + v0 - frame.ppy) / frame.fy * z_cam, z_cam])  # fmt: skip
+        camera = np.column_stack(
+            [
+                (u + u0 - frame.ppx) / frame.fx * z_cam,
+                (v + v0 - frame.ppy) / frame.fy * z_cam,
+                z_cam,
+            ]
+        )
         extrinsic = np.asarray(frame.extrinsic, dtype=np.float64)
         silo = camera @ extrinsic[:3, :3].T + extrinsic[:3, 3]
         depth = float(np.median(z_cam))
         reach = np.hypot((x2 - x1) / frame.fx, (y2 - y1) / frame.fy) * depth / 2
         row, col = self.grid.cell_index(silo[:, 0], silo[:, 1])
         cells = len(np.unique(row * self.grid.shape[1] + col))
-        return RobotSighting(float(np.median(silo[:, 0])), float(np.median(silo[:, 1])),
-                             float(np.percentile(silo[:, 2], 90)), float(reach), cells,
-                             "model")  # fmt: skip
+        return RobotSighting(
+            float(np.median(silo[:, 0])),
+            float(np.median(silo[:, 1])),
+            float(np.percentile(silo[:, 2], 90)),
+            float(reach),
+            cells,
+            "model",
+        )
 
     # ------------------------------------------------------------ update
 
@@ -305,13 +363,15 @@ class LiveMap:
         if n_known in (0, known.size):
             return self.height
         if self._nearest is None or n_known > self._nearest[0] + REFILL_GROWTH * known.size:
-            table = ndimage.distance_transform_edt(~known, return_distances=False,
-                                                   return_indices=True)  # fmt: skip
+            table = ndimage.distance_transform_edt(
+                ~known, return_distances=False, return_indices=True
+            )
             self._nearest = (n_known, tuple(table))
         return np.where(known, self.height, self.height[self._nearest[1]])
 
-    def update(self, frames: list[DepthFrame], now_s: float,
-               seen: Sequence[RobotSighting] = ()) -> LiveUpdate:  # fmt: skip
+    def update(
+        self, frames: list[DepthFrame], now_s: float, seen: Sequence[RobotSighting] = ()
+    ) -> LiveUpdate:
         """Fold the newest frames, taken at `now_s` (any clock in seconds), into the cells and
         make the next map; `seen`, the model's robot sightings, are held as the depth ones."""
         s = self.settings
@@ -331,8 +391,10 @@ class LiveMap:
             held = ndimage.binary_dilation(robot_cells, iterations=margin)
         xs, ys = self._centres
         for robot in robots:  # a few robots, each a vectorised disc
-            held = held | (np.hypot(xs - robot.x, ys - robot.y)
-                           <= max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m)
+            held = held | (
+                np.hypot(xs - robot.x, ys - robot.y)
+                <= max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m
+            )
         # a cell the robot covered stays held while the frame still reads well above its last
         # good value: the robot has not left it, whether or not this frame's detection says so
         held |= self.held & measured & (frame - self.height > s.reset_m)
@@ -357,13 +419,19 @@ class LiveMap:
         self.measured_at[update] = now_s
 
         heights = np.where(self.region, self._filled(), np.nan)
-        changed = self.region & np.isfinite(heights) & ~(
-            np.abs(heights - self.reported) <= s.change_m)
+        changed = (
+            self.region & np.isfinite(heights) & ~(np.abs(heights - self.reported) <= s.change_m)
+        )
         changed |= held != self.held
         self.reported = np.where(changed, heights, self.reported)
         self.held = held
         self.sequence += 1
         fresh = now_s - self.measured_at <= s.stale_s
-        hm = HeightMap(self.grid.origin, self.grid.step, heights.astype(np.float32),
-                       fresh & ~held, self.grid.inside)
+        hm = HeightMap(
+            self.grid.origin,
+            self.grid.step,
+            heights.astype(np.float32),
+            fresh & ~held,
+            self.grid.inside,
+        )
         return LiveUpdate(self.sequence, hm, changed, held, robots)

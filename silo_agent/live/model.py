@@ -33,9 +33,12 @@ class LiveRobotModel:
         self.model = YoloModel(settings.model)
         self.robot_classes = set(settings.robot_classes) & set(self.model.names.values())
         if not self.robot_classes:
-            log.warning("the model has none of [detection.onnx] robot_classes: live maps find "
-                        "the robot from depth alone", model=str(settings.model),
-                        robot_classes=settings.robot_classes)  # fmt: skip
+            log.warning(
+                "the model has none of [detection.onnx] robot_classes: live maps find "
+                "the robot from depth alone",
+                model=str(settings.model),
+                robot_classes=settings.robot_classes,
+            )
         self.period_s = 1.0 / config.live.model_rate_hz
         self.last_run_s = -float("inf")
         self.sightings: list[RobotSighting] = []
@@ -49,8 +52,9 @@ class LiveRobotModel:
         """Whether the next map should bring colour frames for the model."""
         return bool(self.robot_classes) and now_s - self.last_run_s >= self.period_s
 
-    def robots(self, frames: Sequence[DepthFrame], live: LiveMap,
-               now_s: float) -> list[RobotSighting]:  # fmt: skip
+    def robots(
+        self, frames: Sequence[DepthFrame], live: LiveMap, now_s: float
+    ) -> list[RobotSighting]:
         """The robots in the frames' colour images when a run is due, else the last run's."""
         if not self.due(now_s):
             return self.sightings
@@ -60,11 +64,12 @@ class LiveRobotModel:
             if frame.color is None:
                 if frame.serial not in self._blind:
                     self._blind.add(frame.serial)
-                    log.warning("no colour image: the YOLO model cannot look for the robot",
-                                camera=frame.serial)  # fmt: skip
+                    log.warning(
+                        "no colour image: the YOLO model cannot look for the robot",
+                        camera=frame.serial,
+                    )
                 continue
-            for box in self.model.detect(frame.color, self.settings.confidence,
-                                         self.settings.iou):  # fmt: skip
+            for box in self.model.detect(frame.color, self.settings.confidence, self.settings.iou):
                 if box.name not in self.robot_classes:
                     continue
                 sighting = live.sighting_of(frame, (box.x1, box.y1, box.x2, box.y2))

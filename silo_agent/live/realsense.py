@@ -32,14 +32,16 @@ class RealSenseFrameSource:
 
     def __init__(self, config: Config, serials: list[str]) -> None:
         self._stack = contextlib.ExitStack()
-        self._streams: list[tuple[RealSenseCamera, rs.pipeline, list[rs.filter],
-                                  rs.align | None]] = []  # fmt: skip
+        self._streams: list[
+            tuple[RealSenseCamera, rs.pipeline, list[rs.filter], rs.align | None]
+        ] = []
         try:
             for cam in (c for c in config.cameras if c.serial in serials):
                 camera = RealSenseCamera(cam, config)  # CaptureError: no extrinsic, no file
                 try:
                     pipe, profile = self._stack.enter_context(
-                        camera._streaming(camera._depth_config()))
+                        camera._streaming(camera._depth_config())
+                    )
                     if cam.source == "realsense":
                         _configure(profile.get_device().first_depth_sensor(), cam)
                 except (RuntimeError, _DeviceFault) as exc:
@@ -55,12 +57,15 @@ class RealSenseFrameSource:
         """The newest depth frame of every camera, filtered, with its colour aligned to it when
         `color` and the camera streams colour. CaptureError names a camera that gave none
         within its timeout_s (unplugged, or its recording ended)."""
-        return [self._newest(camera, pipe, chain, align if color else None)
-                for camera, pipe, chain, align in self._streams]  # fmt: skip
+        return [
+            self._newest(camera, pipe, chain, align if color else None)
+            for camera, pipe, chain, align in self._streams
+        ]
 
     @staticmethod
-    def _newest(camera: RealSenseCamera, pipe: rs.pipeline, chain: list[rs.filter],
-                align: rs.align | None) -> DepthFrame:  # fmt: skip
+    def _newest(
+        camera: RealSenseCamera, pipe: rs.pipeline, chain: list[rs.filter], align: rs.align | None
+    ) -> DepthFrame:
         timeout_s = camera._camera.timeout_s
         deadline = time.monotonic() + timeout_s
         try:
@@ -69,8 +74,10 @@ class RealSenseFrameSource:
                 remaining_ms = int((deadline - time.monotonic()) * 1000)
                 ok, frameset = pipe.try_wait_for_frames(max(remaining_ms, 0))
                 if not ok:
-                    raise CaptureError(f"camera {camera.serial}: no depth frame within "
-                                       f"{timeout_s:g} s (unplugged, or the recording ended)")
+                    raise CaptureError(
+                        f"camera {camera.serial}: no depth frame within "
+                        f"{timeout_s:g} s (unplugged, or the recording ended)"
+                    )
                 depth = frameset.get_depth_frame()  # the syncer may hand over colour alone
             rgb = None
             if align is not None:
@@ -79,9 +86,17 @@ class RealSenseFrameSource:
             for step in chain:
                 depth = step.process(depth)
             intr = depth.get_profile().as_video_stream_profile().get_intrinsics()
-            return DepthFrame(camera.serial, np.asanyarray(depth.get_data()).copy(),
-                              depth.as_depth_frame().get_units(), intr.fx, intr.fy, intr.ppx,
-                              intr.ppy, camera._extrinsic, rgb)  # fmt: skip
+            return DepthFrame(
+                camera.serial,
+                np.asanyarray(depth.get_data()).copy(),
+                depth.as_depth_frame().get_units(),
+                intr.fx,
+                intr.fy,
+                intr.ppx,
+                intr.ppy,
+                camera._extrinsic,
+                rgb,
+            )
         except RuntimeError as exc:  # librealsense reports USB trouble from any call
             raise CaptureError(f"camera {camera.serial}: {exc}") from None
 

@@ -53,10 +53,15 @@ class SimFrameSource:
         missing = [c.serial for c in cameras if c.source != "sim" or c.view is None]
         if missing:
             raise CaptureError(
-                f"live mode runs on sim cameras with a view; not on {', '.join(missing)}")
-        self._rig = RobotRig(views=tuple(c.view for c in cameras if c.view is not None),
-                             seed=config.simulation.seed, width=cameras[0].width,
-                             height=cameras[0].height, mesh_step=SIM_MESH_STEP_M)  # fmt: skip
+                f"live mode runs on sim cameras with a view; not on {', '.join(missing)}"
+            )
+        self._rig = RobotRig(
+            views=tuple(c.view for c in cameras if c.view is not None),
+            seed=config.simulation.seed,
+            width=cameras[0].width,
+            height=cameras[0].height,
+            mesh_step=SIM_MESH_STEP_M,
+        )
         self._serials = [c.serial for c in cameras]
         self._colored = [c.color for c in cameras]
         self._count = 0
@@ -64,11 +69,22 @@ class SimFrameSource:
     def frames(self, elapsed_s: float, color: bool = False) -> list[DepthFrame]:
         self._count += 1
         rendered = self._rig.frames(elapsed_s, self._count, color and any(self._colored))
-        return [DepthFrame(serial, f.depth, f.depth_unit_m, f.intrinsics.fx, f.intrinsics.fy,
-                           f.intrinsics.ppx, f.intrinsics.ppy, view.nominal,
-                           f.color if colored else None)
-                for serial, colored, view, f in zip(self._serials, self._colored,
-                                                    self._rig.views, rendered, strict=True)]
+        return [
+            DepthFrame(
+                serial,
+                f.depth,
+                f.depth_unit_m,
+                f.intrinsics.fx,
+                f.intrinsics.fy,
+                f.intrinsics.ppx,
+                f.intrinsics.ppy,
+                view.nominal,
+                f.color if colored else None,
+            )
+            for serial, colored, view, f in zip(
+                self._serials, self._colored, self._rig.views, rendered, strict=True
+            )
+        ]
 
     def close(self) -> None:
         """Nothing to release."""
@@ -81,8 +97,10 @@ def open_source(config: Config) -> FrameSource:
     if sources == {"sim"}:
         return SimFrameSource(config, serials)
     if "sim" in sources:
-        raise CaptureError("live mode cannot mix sim cameras with D455s or recordings; "
-                           "choose them with [live] cameras")  # fmt: skip
+        raise CaptureError(
+            "live mode cannot mix sim cameras with D455s or recordings; "
+            "choose them with [live] cameras"
+        )
     from silo_agent.live.realsense import RealSenseFrameSource
 
     return RealSenseFrameSource(config, serials)
@@ -98,9 +116,16 @@ class LiveSession:
     """One `P/cmd/live` session. `start()`, `suspend()`, `resume()`, `stop()`; `on_end` is
     called once, from the session's thread or `stop()`, with why it ended."""
 
-    def __init__(self, config: Config, session_id: str, rate_hz: float, duration_s: float,
-                 publish: Callable[[bytes, float], None], on_end: Callable[[str], None],
-                 start_map: HeightMap | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        config: Config,
+        session_id: str,
+        rate_hz: float,
+        duration_s: float,
+        publish: Callable[[bytes, float], None],
+        on_end: Callable[[str], None],
+        start_map: HeightMap | None = None,
+    ) -> None:
         self.config = config
         self.session_id = session_id
         self.rate_hz = rate_hz
@@ -129,8 +154,9 @@ class LiveSession:
 
     def start(self) -> None:
         self._stop.clear()
-        self._thread = threading.Thread(target=self._loop, name=f"live-{self.session_id}",
-                                        daemon=True)  # fmt: skip
+        self._thread = threading.Thread(
+            target=self._loop, name=f"live-{self.session_id}", daemon=True
+        )
         self._thread.start()
 
     resume = start
@@ -158,8 +184,7 @@ class LiveSession:
         if self._source is not None:
             self._source.close()
             self._source = None
-        log.info("live session ended", session=self.session_id, reason=reason,
-                 maps=self.stats.maps)  # fmt: skip
+        log.info("live session ended", session=self.session_id, reason=reason, maps=self.stats.maps)
         self._on_end(reason)
 
     def _loop(self) -> None:
@@ -195,7 +220,10 @@ class LiveSession:
                     "changed_cells": int(update.changed.sum()),
                 }
                 payload = encode_live_heightmap(
-                    update.heightmap, self.session_id, update.sequence, meta,
+                    update.heightmap,
+                    self.session_id,
+                    update.sequence,
+                    meta,
                     {"changed": update.changed, "held": update.held},
                 )
             except CaptureError as exc:

@@ -55,13 +55,25 @@ def mounded_bay(g: Grain) -> Scene:
         inside = (np.abs(x) <= half + 1e-9) & (np.abs(y) <= half + 1e-9)
         return np.where(inside, LEVEL_M + heaps, BAY_WALL_TOP)
 
-    site = Site(region=square(REGION_HALF_M), floor_z=0.0, ceiling_z=BAY_CEILING_Z,
-                bulk_density_t_m3=g.density_t_m3)
+    site = Site(
+        region=square(REGION_HALF_M),
+        floor_z=0.0,
+        ceiling_z=BAY_CEILING_Z,
+        bulk_density_t_m3=g.density_t_m3,
+    )
     edge = half + 0.1
     return Scene(
-        name="mounded-bay", grain=g, site=site, height=height, extent=(-edge, edge, -edge, edge),
-        outer_z=None, volume_m3=float("nan"), target=(0.0, 0.0, LEVEL_M), layout="wall",
-        wall_half_m=half, wall_camera_z=BAY_CAMERA_Z,
+        name="mounded-bay",
+        grain=g,
+        site=site,
+        height=height,
+        extent=(-edge, edge, -edge, edge),
+        outer_z=None,
+        volume_m3=float("nan"),
+        target=(0.0, 0.0, LEVEL_M),
+        layout="wall",
+        wall_half_m=half,
+        wall_camera_z=BAY_CAMERA_Z,
         params={"level": LEVEL_M, "mounds": MOUNDS},
     )
 
@@ -133,8 +145,9 @@ class RakingRobot:
         unit, _ = self._direction
         centre = np.asarray(self.path[0]) + unit * self.travelled(t)
         ground = float(self.height(t)(centre[:1], centre[1:])[0])
-        return RobotPose(float(centre[0]), float(centre[1]), ground,
-                         float(np.arctan2(unit[1], unit[0])))
+        return RobotPose(
+            float(centre[0]), float(centre[1]), ground, float(np.arctan2(unit[1], unit[0]))
+        )
 
     def world(self, t: float, mesh_step: float = 0.01) -> World:
         snapshot = replace(self.base, height=self.height(t))
@@ -144,23 +157,37 @@ class RakingRobot:
 def robot_mesh(pose: RobotPose) -> Mesh:
     """The robot's box, turned to its heading, standing on its ground height."""
     length, width, height = ROBOT_SIZE_M
-    local = np.array([[sx * length / 2, sy * width / 2, sz * height]
-                      for sz in (0, 1) for sy in (-1, 1) for sx in (-1, 1)])
+    local = np.array(
+        [
+            [sx * length / 2, sy * width / 2, sz * height]
+            for sz in (0, 1)
+            for sy in (-1, 1)
+            for sx in (-1, 1)
+        ]
+    )
     c, s = np.cos(pose.heading), np.sin(pose.heading)
     rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     vertices = local @ rotation.T + [pose.x, pose.y, pose.z]
     faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    triangles = np.array([t for a, b, c_, d in faces for t in ((a, b, c_), (a, c_, d))],
-                         dtype=np.uint32)
+    triangles = np.array(
+        [t for a, b, c_, d in faces for t in ((a, b, c_), (a, c_, d))], dtype=np.uint32
+    )
     return Mesh(vertices.astype(np.float32), triangles, CLUTTER)
 
 
 class RobotRig:
     """Renders the moving scene from wall cameras: one noisy depth frame per camera per instant."""
 
-    def __init__(self, robot: RakingRobot | None = None, views: tuple[str, ...] = (
-            "A2", "A4", "A6", "A8"), seed: int = 0, width: int = 848, height: int = 480,
-            noise: NoiseModel | None = None, mesh_step: float = 0.01) -> None:  # fmt: skip
+    def __init__(
+        self,
+        robot: RakingRobot | None = None,
+        views: tuple[str, ...] = ("A2", "A4", "A6", "A8"),
+        seed: int = 0,
+        width: int = 848,
+        height: int = 480,
+        noise: NoiseModel | None = None,
+        mesh_step: float = 0.01,
+    ) -> None:
         """`mesh_step` 0.01 m keeps the rendered surface within a millimetre of the truth;
         coarser builds the moving world faster (the daemon's demo, not the accuracy tests)."""
         self.robot = robot or RakingRobot(mounded_bay(grain("wheat")))
@@ -168,8 +195,15 @@ class RobotRig:
         self.seed = seed
         self.mesh_step = mesh_step
         self.views: list[SimView] = [
-            plan_view(v, serial_for(v), view_pose(self.robot.base, v, "wall"), seed, (0.0, 0.0),
-                      width, height)
+            plan_view(
+                v,
+                serial_for(v),
+                view_pose(self.robot.base, v, "wall"),
+                seed,
+                (0.0, 0.0),
+                width,
+                height,
+            )
             for v in views
         ]
 
@@ -178,5 +212,11 @@ class RobotRig:
         the colour image aligned to depth when `color` (the grain's, the robot grey)."""
         raycaster = Raycaster(self.robot.world(t, self.mesh_step))
         rgb = self.robot.base.grain.rgb if color else None
-        return [expose(trace(raycaster, v.true, v.intrinsics, rgb), self.noise,
-                       rng_for(self.seed, v.key, _NOISE_STREAM, index)) for v in self.views]
+        return [
+            expose(
+                trace(raycaster, v.true, v.intrinsics, rgb),
+                self.noise,
+                rng_for(self.seed, v.key, _NOISE_STREAM, index),
+            )
+            for v in self.views
+        ]
