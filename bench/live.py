@@ -37,16 +37,7 @@ def rendered(rig: RobotRig, count: int) -> list[list[DepthFrame]]:
         frames = rig.frames(index * 0.5, index)
         out.append(
             [
-                DepthFrame(
-                    v.serial,
-                    f.depth,
-                    f.depth_unit_m,
-                    f.intrinsics.fx,
-                    f.intrinsics.fy,
-                    f.intrinsics.ppx,
-                    f.intrinsics.ppy,
-                    v.nominal,
-                )
+                DepthFrame.rendered(v.serial, f, v.nominal)
                 for v, f in zip(rig.views, frames, strict=True)
             ]
         )

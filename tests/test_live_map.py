@@ -28,16 +28,7 @@ class Step:
 
 def depth_frames(rig: RobotRig, t: float, index: int) -> list[DepthFrame]:
     return [
-        DepthFrame(
-            v.serial,
-            f.depth,
-            f.depth_unit_m,
-            f.intrinsics.fx,
-            f.intrinsics.fy,
-            f.intrinsics.ppx,
-            f.intrinsics.ppy,
-            v.nominal,
-        )
+        DepthFrame.rendered(v.serial, f, v.nominal)
         for v, f in zip(rig.views, rig.frames(t, index), strict=True)
     ]
 

@@ -142,17 +142,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Grid, list[Step]]:
     for index, t in enumerate(TIMES):
         rendered = rig.frames(t, index, color=True)
         frames = [
-            DepthFrame(
-                v.serial,
-                f.depth,
-                f.depth_unit_m,
-                f.intrinsics.fx,
-                f.intrinsics.fy,
-                f.intrinsics.ppx,
-                f.intrinsics.ppy,
-                v.nominal,
-                f.color,
-            )
+            DepthFrame.rendered(v.serial, f, v.nominal, f.color)
             for v, f in zip(rig.views, rendered, strict=True)
         ]
         seen = model.robots(frames, with_model, t)
@@ -320,17 +310,7 @@ def test_the_model_runs_at_most_model_rate_hz_and_maps_between_reuse_its_sightin
     live = LiveMap(Grid.over(site.region, config.live.grid_step_m), config.live, site.ceiling_z)
     model = LiveRobotModel(config)
     frames = [
-        DepthFrame(
-            v.serial,
-            f.depth,
-            f.depth_unit_m,
-            f.intrinsics.fx,
-            f.intrinsics.fy,
-            f.intrinsics.ppx,
-            f.intrinsics.ppy,
-            v.nominal,
-            f.color,
-        )
+        DepthFrame.rendered(v.serial, f, v.nominal, f.color)
         for v, f in zip(small_rig.views, small_rig.frames(0.0, 0, color=True), strict=True)
     ]
     # the same frames with the robot painted the grain's colour: a run finds nothing there

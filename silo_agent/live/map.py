@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage
@@ -35,6 +35,9 @@ from scipy import ndimage
 from silo_agent.config import LiveConfig
 from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.grid import Grid
+
+if TYPE_CHECKING:
+    from silo_agent.sim.camera import Frame
 
 ROBOT_STEEP_M = 0.12  # rise of the top-hat within 2 cells that no grain slope makes
 ROBOT_MIN_EDGE_M = 0.4  # steep edge a robot shows at least (a fifth of a 0.6 x 0.4 m outline)
@@ -60,6 +63,16 @@ class DepthFrame:
     ppy: float
     extrinsic: np.ndarray  # 4x4 camera -> silo
     color: np.ndarray | None = None  # (h, w, 3) uint8 RGB aligned to depth (any size), if any
+
+    @classmethod
+    def rendered(
+        cls, serial: str, frame: Frame, extrinsic: np.ndarray, color: np.ndarray | None = None
+    ) -> DepthFrame:
+        """A simulated camera's frame as the live map takes it, placed by `extrinsic`."""
+        k = frame.intrinsics
+        return cls(
+            serial, frame.depth, frame.depth_unit_m, k.fx, k.fy, k.ppx, k.ppy, extrinsic, color
+        )
 
 
 @dataclass(frozen=True)

@@ -70,17 +70,7 @@ class SimFrameSource:
         self._count += 1
         rendered = self._rig.frames(elapsed_s, self._count, color and any(self._colored))
         return [
-            DepthFrame(
-                serial,
-                f.depth,
-                f.depth_unit_m,
-                f.intrinsics.fx,
-                f.intrinsics.fy,
-                f.intrinsics.ppx,
-                f.intrinsics.ppy,
-                view.nominal,
-                f.color if colored else None,
-            )
+            DepthFrame.rendered(serial, f, view.nominal, f.color if colored else None)
             for serial, colored, view, f in zip(
                 self._serials, self._colored, self._rig.views, rendered, strict=True
             )
