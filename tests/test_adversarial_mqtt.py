@@ -217,6 +217,45 @@ def test_retained_command_does_not_scan_at_start(broker, telemetry_factory, coll
     assert [r["request_id"] for r in replies] == ["live"]
 
 
+@pytest.mark.parametrize("response_topic", ["x/replies/#", f"{BASE}/status"])
+def test_live_command_response_topic_is_checked_like_the_scan_commands(
+    broker, telemetry_factory, collector_factory, response_topic
+):
+    tel = telemetry_factory(broker)
+    started: list[object] = []
+    tel.on_live_command(lambda cmd: started.append(cmd) or "live-1")
+    col = collector_factory(broker, [f"{BASE}/#", "x/#"])
+    col.wait_topic(f"{BASE}/status")
+    props = Properties(PacketTypes.PUBLISH)
+    props.ResponseTopic = response_topic
+    props.CorrelationData = b"c-live"
+    col.publish(f"{BASE}/cmd/live", b'{"on": true}', props)
+    reply = reply_to(col, b"c-live", f"{BASE}/cmd/live/reply")
+    assert reply["status"] == "error" and "response topic" in reply["error"]
+    assert started == []
+    time.sleep(0.3)
+    assert not [m for m in col.on(f"{BASE}/status") if b"silo-cmd-reply/1" in m.payload]
+
+
+def test_retained_live_command_is_ignored_at_start(broker, telemetry_factory, collector_factory):
+    col = collector_factory(broker, [f"{BASE}/#"])
+    col.client.publish(f"{BASE}/cmd/live", b'{"on": true}', qos=1, retain=True).wait_for_publish(5)
+    tel = telemetry_factory(broker, start=False)
+    started: list[object] = []
+    tel.on_live_command(lambda cmd: started.append(cmd) or "live-1")
+    tel.start()
+    col.wait_for(
+        lambda ms: any(
+            m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online" for m in ms
+        )
+    )
+    col.publish(f"{BASE}/cmd/live", b'{"on": true, "request_id": "now"}')
+    col.wait_topic(f"{BASE}/cmd/live/reply")
+    assert len(started) == 1
+    replies = [json.loads(m.payload) for m in col.on(f"{BASE}/cmd/live/reply")]
+    assert [r["request_id"] for r in replies] == ["now"]
+
+
 def statuses(col) -> list[dict]:
     return [json.loads(m.payload) for m in col.on(f"{BASE}/status")]
 

@@ -176,7 +176,14 @@ class Commands:
         """One incoming message, to the handler of its topic."""
         ha = self.cfg.homeassistant
         primary_host = self.cfg.sparkplug.primary_host_id
-        if msg.topic == f"{self.base}/cmd/scan":
+        if msg.topic in (f"{self.base}/cmd/scan", f"{self.base}/cmd/live") and msg.retain:
+            # the broker replays a retained command at every subscribe: it would act at every
+            # start; the live delivery (retain flag clear) was already answered
+            log.warning(
+                "ignoring a retained command; clear it with an empty retained message",
+                topic=msg.topic,
+            )
+        elif msg.topic == f"{self.base}/cmd/scan":
             self._scan_command(msg)
         elif msg.topic == f"{self.base}/cmd/live":
             self._live_command(msg)
@@ -206,25 +213,27 @@ class Commands:
             spaces.append(self.cfg.homeassistant.discovery_prefix.rstrip("/"))
         return spaces
 
-    def _scan_command(self, msg: mqtt.MQTTMessage) -> None:
-        if msg.retain:
-            # the broker replays a retained command at every subscribe: it would scan at
-            # every start; the live delivery (retain flag clear) was already answered
-            log.warning(
-                "ignoring a retained scan request; clear it with an empty retained message",
-                topic=msg.topic,
-            )
-            return
+    def _reply_route(
+        self, msg: mqtt.MQTTMessage, command: str
+    ) -> tuple[str, bytes | None, str | None]:
+        """(reply topic, correlation data, why the requested Response Topic was refused) of a
+        command: a refused one is answered on the documented `P/cmd/<command>/reply`, where the
+        requester can always listen."""
         props = getattr(msg, "properties", None)
-        fallback = f"{self.base}/cmd/scan/reply"
+        fallback = f"{self.base}/cmd/{command}/reply"
         reply_topic = getattr(props, "ResponseTopic", None) or fallback
         correlation = getattr(props, "CorrelationData", None)
+        problem = reply_topic_problem(reply_topic, self._reply_namespaces(), fallback)
+        if problem is None:
+            return reply_topic, correlation, None
+        return fallback, correlation, f"response topic {reply_topic[:200]!r} refused: {problem}"
+
+    def _scan_command(self, msg: mqtt.MQTTMessage) -> None:
+        reply_topic, correlation, topic_error = self._reply_route(msg, "scan")
         about: str | None = None
         request, request_id, error = parse_scan_request(bytes(msg.payload))
-        topic_problem = reply_topic_problem(reply_topic, self._reply_namespaces(), fallback)
-        if topic_problem is not None:  # answered where the requester can always listen
-            error = f"response topic {reply_topic[:200]!r} refused: {topic_problem}"
-            reply_topic = fallback
+        if topic_error is not None:
+            error = topic_error
         if error is None and request is not None:
             callback = self._scan_callback
             if callback is None:
@@ -251,13 +260,13 @@ class Commands:
             self._reply(reply_topic, correlation, request_id, status="accepted", accepted=True)
 
     def _live_command(self, msg: mqtt.MQTTMessage) -> None:
-        props = getattr(msg, "properties", None)
-        reply_topic = getattr(props, "ResponseTopic", None) or f"{self.base}/cmd/live/reply"
-        correlation = getattr(props, "CorrelationData", None)
+        reply_topic, correlation, topic_error = self._reply_route(msg, "live")
         request_id = session_id = None
         try:
             request = parse_live_request(bytes(msg.payload))
             request_id = request.request_id
+            if topic_error is not None:
+                raise CommandRejected(topic_error)
             if self._live_callback is None:
                 raise CommandRejected("this agent does not run live sessions")
             session_id = self._live_callback(LiveCommand(request, reply_topic, correlation))
