@@ -322,3 +322,32 @@ def test_process_does_not_import_open3d_for_bicm(tmp_path, cone_scan_4: Scan) ->
 
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
+
+
+def test_slope_correction_reaches_the_whole_of_a_round_region() -> None:
+    """Each cell's points sit off its centre on a tilted plane; the correction must bring every
+    interior cell of a round silo to the plane at its centre. Outside the circle the map has no
+    surface (NaN), which a plain 3 x 3 mean carried along whole rows, switching the correction
+    off over most of the region."""
+    from silo_agent.reconstruct import _slope_corrected
+    from silo_agent.reconstruct.filters import dilate_cross
+    from silo_agent.reconstruct.grid import Grid
+
+    step, rows = 0.05, 60
+    angle = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    region = np.column_stack([1.5 + 1.4 * np.cos(angle), 1.5 + 1.4 * np.sin(angle)])
+    grid = Grid(
+        (0.0, 0.0), step, (rows, rows), cell_fractions(region, (0.0, 0.0), step, (rows, rows))
+    )
+    inside = grid.inside > 0
+
+    def plane(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return 0.3 * x - 0.2 * y + 1.0
+
+    xs, ys = grid.centres()
+    cx, cy = xs - 0.3 * step, ys - 0.2 * step  # where each cell's points sit
+    filled = np.where(inside, plane(cx, cy), np.nan)
+    corrected = _slope_corrected(grid, filled, cx, cy, inside)
+    interior = ~dilate_cross(~inside, 4)  # its 5 x 5 neighbourhood (mean, then gradient) inside
+    assert interior.sum() > 0.6 * inside.sum()
+    np.testing.assert_allclose(corrected[interior], plane(xs, ys)[interior], atol=1e-9)

@@ -12,13 +12,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
 from silo_agent.geometry import points_outside
 from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
+from silo_agent.reconstruct.filters import box_sum, dilate_cross, maximum_filter, minimum_filter
 from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.reconstruct.smooth import masked_smooth
@@ -141,9 +141,15 @@ def _slope_corrected(
     """Move each observed cell's mean from its points' centroid to the cell centre.
 
     A cell's points rarely sit evenly over it (cameras see the near part of a slope more
-    densely); along the local slope that offset is a height bias, removed here.
+    densely); along the local slope that offset is a height bias, removed here. The slope is
+    read on the 3 x 3 mean of the cells with a surface (the grid's edge cells repeated beyond
+    it): outside a round region there is none, and a plain mean would carry that NaN along.
     """
-    smooth = ndimage.uniform_filter(filled, size=3, mode="nearest")
+    surface = np.isfinite(filled)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smooth = box_sum(np.where(surface, filled, 0.0), 3, "nearest") / box_sum(
+            surface.astype(np.float64), 3, "nearest"
+        )
     grad_y, grad_x = np.gradient(smooth, grid.step)
     xs, ys = grid.centres()
     shift = grad_x * (xs - cells_x) + grad_y * (ys - cells_y)
@@ -159,7 +165,7 @@ def _trusted_cells(grid: Grid, observed: np.ndarray, counts: np.ndarray) -> np.n
     than their neighbours, and are left to the fill instead.
     """
     band = max(1, round(EDGE_BAND_M / grid.step))
-    near_hole = ndimage.binary_dilation(~observed & (grid.inside > 0), iterations=band)
+    near_hole = dilate_cross(~observed & (grid.inside > 0), band)
     local = masked_smooth(counts.astype(float), observed, band / 2)
     sparse = counts < EDGE_DENSITY_RATIO * np.nan_to_num(local)
     return observed & ~(near_hole & sparse)
@@ -175,8 +181,8 @@ def _without_spikes(
     """
     size = max(3, 2 * round(SPIKE_WIDTH_M / grid.step / 2) + 1)
     region = grid.inside > 0
-    eroded = ndimage.minimum_filter(np.where(region, filled, np.inf), size=size)
-    opened = ndimage.maximum_filter(np.where(region, eroded, -np.inf), size=size)
+    eroded = minimum_filter(np.where(region, filled, np.inf), size)
+    opened = maximum_filter(np.where(region, eroded, -np.inf), size)
     spikes = region & (filled - opened > tolerance)
     return np.where(spikes, opened, filled), observed & ~spikes
 

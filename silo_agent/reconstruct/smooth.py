@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage
+
+from silo_agent.reconstruct.filters import box_sum
 
 
 def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> np.ndarray:
@@ -17,8 +18,8 @@ def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> n
     size = max(3, 2 * round(sigma_cells * math.sqrt(6) / 2) + 1)
     weight = mask.astype(np.float64)
     total = np.where(mask, values, 0.0)
-    for _ in range(2):
-        weight = ndimage.uniform_filter(weight, size, mode="constant")
-        total = ndimage.uniform_filter(total, size, mode="constant")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(mask & (weight > 1e-12), total / weight, np.nan)
+    for _ in range(2):  # sums, not means: the window's area cancels in total / weight
+        weight = box_sum(weight, size)
+        total = box_sum(total, size)
+    with np.errstate(invalid="ignore", divide="ignore"):  # weight: whole numbers, exactly
+        return np.where(mask & (weight > 0.5), total / weight, np.nan)

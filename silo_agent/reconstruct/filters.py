@@ -1,0 +1,107 @@
+"""The few grid filters the engine runs on every scan, in numpy: box sums, square minimum and
+maximum, and dilation by the 4-neighbour cross. Grids are 2-D.
+
+scipy.ndimage has all of them, but a one-off `silo-agent process` would pay about 0.25 s to
+import it (its array-API layer copies numpy's namespace and so loads numpy.f2py, numpy.testing
+and more), far more than the filters take to run. Each function here gives what its ndimage
+counterpart gives in the mode the engine uses (tests/test_filters.py compares them): box sums
+from cumulative sums, minimum and maximum by van Herk / Gil-Werman block scans, so each costs
+O(cells) whatever the window. Every filter runs down the columns (axis 0) of the grid, then of
+its transpose; the loops step through the rows of a window or a grid, each step one operation
+on whole rows, never a loop over cells.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+BoxMode = Literal["constant", "nearest"]  # zeros, or the edge cell repeated, outside the grid
+
+
+def box_sum(values: np.ndarray, size: int, mode: BoxMode = "constant") -> np.ndarray:
+    """Sum over the `size` x `size` window centred on each cell (`size` odd, `values` finite):
+    `size`² times `ndimage.uniform_filter(values, size, mode=mode)`. As with ndimage's running
+    sums, a NaN would spoil the rest of its row or column."""
+    if size < 1 or size % 2 != 1:
+        raise ValueError(f"window size must be odd and positive, got {size}")
+    down = _box_sum_down(values, size, mode)
+    return _swap(_box_sum_down(np.ascontiguousarray(_swap(down)), size, mode))
+
+
+def _swap(grid: np.ndarray) -> np.ndarray:
+    """The first two axes exchanged (a view)."""
+    return grid.swapaxes(0, 1)
+
+
+def _box_sum_down(values: np.ndarray, size: int, mode: BoxMode) -> np.ndarray:
+    """Window sums along axis 0: differences of the running total of the rows padded by half a
+    window (and one more row in front, which every window subtracts). The running total adds
+    whole rows: numpy's cumsum along axis 0 walks each column separately and is several times
+    slower."""
+    rows = values.shape[0]
+    half = size // 2
+    total = np.zeros((rows + size, *values.shape[1:]))
+    total[half + 1 : half + 1 + rows] = values
+    if mode == "nearest":
+        total[1 : half + 1] = values[:1]
+        total[half + 1 + rows :] = values[-1:]
+    for row in range(1, rows + size):
+        np.add(total[row - 1], total[row], out=total[row])
+    return total[size:] - total[:rows]
+
+
+def minimum_filter(values: np.ndarray, size: int) -> np.ndarray:
+    """`ndimage.minimum_filter(values, size)`: square window, mode 'reflect'."""
+    return _extreme_down(_extreme_down(values, size, np.minimum).T, size, np.minimum).T
+
+
+def maximum_filter(values: np.ndarray, size: int) -> np.ndarray:
+    """`ndimage.maximum_filter(values, size)`: square window, mode 'reflect'."""
+    return _extreme_down(_extreme_down(values, size, np.maximum).T, size, np.maximum).T
+
+
+def _extreme_down(values: np.ndarray, size: int, pick: np.ufunc) -> np.ndarray:
+    """Van Herk / Gil-Werman along axis 0: in blocks of `size` rows, running extremes forwards
+    and backwards; a window spans the end of one block and the start of the next, so its
+    extreme is the pick of one backward and one forward value. The loops run over the rows of
+    a block (the window), each step a whole-row operation."""
+    if size < 1:
+        raise ValueError(f"window size must be positive, got {size}")
+    if size == 1:
+        return values.copy()
+    rows = values.shape[0]
+    before, after = size // 2, size - 1 - size // 2  # ndimage's centring, even sizes too
+    blocks = -(-(rows + size - 1) // size)
+    identity = np.inf if pick is np.minimum else -np.inf
+    padded = np.full((blocks * size, *values.shape[1:]), identity)
+    padded[before : before + rows] = values
+    # mode 'reflect' (d c b a | a b c d | d c b a); windows never reach past one grid length
+    lead = min(before, rows)
+    padded[before - lead : before] = values[:lead][::-1]
+    tail = min(after, rows)
+    padded[before + rows : before + rows + tail] = values[rows - tail :][::-1]
+    forward = padded.reshape(blocks, size, -1)
+    backward = forward.copy()
+    for k in range(1, size):
+        pick(forward[:, k], forward[:, k - 1], out=forward[:, k])
+        j = size - 1 - k
+        pick(backward[:, j], backward[:, j + 1], out=backward[:, j])
+    forward_rows = forward.reshape(padded.shape)
+    backward_rows = backward.reshape(padded.shape)
+    return pick(backward_rows[:rows], forward_rows[size - 1 : size - 1 + rows])
+
+
+def dilate_cross(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """`ndimage.binary_dilation(mask, iterations=iterations)`: each pass adds the 4-neighbours
+    of every set cell (nothing is set beyond the grid)."""
+    out = mask.astype(bool)
+    for _ in range(iterations):
+        grown = out.copy()
+        grown[1:] |= out[:-1]
+        grown[:-1] |= out[1:]
+        grown[:, 1:] |= out[:, :-1]
+        grown[:, :-1] |= out[:, 1:]
+        out = grown
+    return out

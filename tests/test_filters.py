@@ -1,0 +1,58 @@
+"""The engine's numpy grid filters against scipy.ndimage, the library they stand in for on the
+scan path (silo_agent/reconstruct/filters.py says why), on random grids of awkward shapes:
+single rows and columns, windows longer than the grid, even windows, infinities."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from silo_agent.reconstruct import filters
+
+SHAPES = [(1, 1), (1, 7), (6, 1), (13, 9), (37, 120), (200, 173)]
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("size", [1, 3, 5, 11, 49])
+@pytest.mark.parametrize("mode", ["constant", "nearest"])
+def test_box_sum_is_ndimage_uniform_filter_times_the_window(shape, size, mode) -> None:
+    values = np.random.default_rng(size).normal(1.5, 0.4, shape)
+    expected = ndimage.uniform_filter(values, size, mode=mode) * size**2
+    np.testing.assert_allclose(
+        filters.box_sum(values, size, mode), expected, rtol=1e-13, atol=1e-13 * size**2
+    )
+
+
+def test_box_sum_of_a_mask_counts_exactly() -> None:
+    """masked_smooth relies on it: its weights are whole numbers, compared with 0.5."""
+    mask = np.random.default_rng(3).random((50, 60)) < 0.3
+    counts = filters.box_sum(filters.box_sum(mask.astype(float), 7), 7)
+    assert np.array_equal(counts, np.round(counts))
+
+
+def test_box_filters_refuse_even_windows() -> None:
+    with pytest.raises(ValueError, match="odd"):
+        filters.box_sum(np.zeros((4, 4)), 4)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("size", [1, 2, 3, 4, 11, 12, 101])
+def test_minimum_and_maximum_are_ndimage_filters(shape, size) -> None:
+    rng = np.random.default_rng(sum(shape) + size)
+    values = rng.normal(size=shape)
+    values[rng.random(shape) < 0.1] = np.inf  # how the engine marks cells outside the region
+    assert np.array_equal(
+        filters.minimum_filter(values, size), ndimage.minimum_filter(values, size)
+    )
+    assert np.array_equal(
+        filters.maximum_filter(-values, size), ndimage.maximum_filter(-values, size)
+    )
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("iterations", [1, 2, 10])
+def test_dilate_cross_is_ndimage_binary_dilation(shape, iterations) -> None:
+    mask = np.random.default_rng(iterations).random(shape) < 0.05
+    expected = ndimage.binary_dilation(mask, iterations=iterations)
+    assert np.array_equal(filters.dilate_cross(mask, iterations), expected)
