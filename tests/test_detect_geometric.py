@@ -13,8 +13,10 @@ import pytest
 from silo_agent.analysis import AnalysisResult, analyse
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, match_ids
+from silo_agent.detect.geometric import Surface, grid_of
 from silo_agent.geometry import points_outside
 from silo_agent.reconstruct import Result, reconstruct
+from silo_agent.reconstruct.volume import base_surface
 from silo_agent.scan import Scan, write_scan
 from silo_agent.sim import make_scene, simulate
 from silo_agent.sim.scenes import _bay
@@ -55,6 +57,16 @@ def test_finds_every_pile_with_its_centroid_and_volume(piles_result) -> None:
     # largest first, ids 1..n without an earlier scan
     assert [p.id for p in piles] == [1, 2, 3, 4]
     assert [p.volume_m3 for p in piles] == sorted((p.volume_m3 for p in piles), reverse=True)
+
+
+def test_pile_columns_are_the_volume_s_own(piles_result) -> None:
+    """Every cell's column is the published volume's: summed over the whole map they give the
+    scan's volume to rounding, so piles never claim volume the scan does not count."""
+    result = piles_result.reconstruction
+    hm = result.heightmap
+    base = base_surface(grid_of(hm), hm.heights.astype(float), "floor", result.floor_z)
+    surface = Surface.of(hm, base, result.floor_z, None)
+    assert float(np.sum(surface.columns)) == pytest.approx(result.volume_m3, rel=1e-12)
 
 
 def test_summary_and_description_carry_the_piles(piles_result) -> None:
@@ -235,7 +247,7 @@ def test_scan_carries_pile_ids_over_from_the_latest_earlier_result(tmp_path) -> 
     assert previous_piles(cache, "silo-1-20251231T000000Z") == []
 
 
-def test_basin_peaks_are_ndimage_maximum_and_its_position_ties_included() -> None:
+def test_basin_peaks_are_ndimage_maximum_at_the_first_highest_cell() -> None:
     from scipy import ndimage
 
     from silo_agent.detect.geometric import _basin_peaks
@@ -255,5 +267,6 @@ def test_basin_peaks_are_ndimage_maximum_and_its_position_ties_included() -> Non
         index = np.arange(1, count + 1)
         peaks, where = _basin_peaks(values, labels, count)
         assert np.array_equal(peaks, ndimage.maximum(values, labels, index=index))
-        expected = ndimage.maximum_position(values, labels, index=index)
-        assert [tuple(w) for w in where.tolist()] == [tuple(map(int, e)) for e in expected]
+        for k, (row, col) in zip(index, where.tolist(), strict=True):
+            highest = np.argwhere((labels == k) & (values == peaks[k - 1]))
+            assert (row, col) == tuple(highest[0])  # argwhere: row-major order

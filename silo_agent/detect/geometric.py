@@ -13,8 +13,9 @@ Works from depth alone, so it needs neither light (the paper's YOLO drops to 26-
    a smoother relief, so noise bumps do not count);
 4. piles lower than `min_height_m` or with a footprint under `min_area_m2` are dropped.
 
-A pile's volume is the sum of the engine's own per-cell columns over its basin
-(`volume.denoised_columns`), so pile volumes add up to (at most) the scan's volume.
+A pile's volume is the sum of the engine's own per-cell columns over its basin (the height
+map's `counted` layer, or `volume.denoised_columns` over a local background), so pile volumes
+add up to (at most) the scan's volume.
 """
 
 from __future__ import annotations
@@ -22,14 +23,14 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
 
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
 from silo_agent.heightmap import HeightMap
+from silo_agent.reconstruct.filters import maximum_filter, minimum_filter
 from silo_agent.reconstruct.grid import Grid
 from silo_agent.reconstruct.smooth import masked_smooth
-from silo_agent.reconstruct.volume import DENOISE_SCALE_M, denoised_columns
+from silo_agent.reconstruct.volume import DENOISE_SCALE_M, counted_columns, denoised_columns
 
 __all__ = ["Surface", "detect_piles", "grid_of", "relief"]
 
@@ -56,13 +57,14 @@ def relief(heightmap: HeightMap, base: np.ndarray, background_m: float | None) -
     if background_m is not None:
         size = max(3, 2 * round(background_m / heightmap.step / 2) + 1)
         smooth = masked_smooth(heights, region, max(PEAK_SMOOTHING_M / heightmap.step, 1.0))
-        eroded = ndimage.minimum_filter(np.where(region, smooth, np.inf), size=size)
-        opened = ndimage.maximum_filter(np.where(region, eroded, -np.inf), size=size)
+        eroded = minimum_filter(np.where(region, smooth, np.inf), size)
+        opened = maximum_filter(np.where(region, eroded, -np.inf), size)
         floor = np.maximum(base, np.where(region, opened, base))
     return np.where(region, heights - floor, np.nan)
 
 
 _OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
+_DIAGONAL = float(np.hypot(1, 1))  # a diagonal neighbour's distance in cells
 
 
 def _ascent_basins(smooth: np.ndarray, domain: np.ndarray) -> np.ndarray:
@@ -70,7 +72,9 @@ def _ascent_basins(smooth: np.ndarray, domain: np.ndarray) -> np.ndarray:
 
     Each cell points at its steepest uphill neighbour (8-connected); pointer jumping follows
     the paths to their tops in log(length) vectorised steps. Where two cones meet, the ascent
-    goes up the cone the cell lies on, so basin boundaries fall on the valley lines.
+    goes up the cone the cell lies on, so basin boundaries fall on the valley lines. Labels
+    number the tops in row-major order. A path never leaves the domain (cells outside it read
+    -inf), so the tops are the domain's cells that point at themselves.
     """
     rows, cols = smooth.shape
     values = np.pad(np.where(domain, smooth, -np.inf), 1, constant_values=-np.inf)
@@ -78,23 +82,27 @@ def _ascent_basins(smooth: np.ndarray, domain: np.ndarray) -> np.ndarray:
     best = np.zeros(smooth.shape)
     target = np.arange(rows * cols).reshape(rows, cols)
     index = np.pad(target, 1, constant_values=-1)
-    for dr, dc in _OFFSETS:
-        neighbour = values[1 + dr : rows + 1 + dr, 1 + dc : cols + 1 + dc]
-        with np.errstate(invalid="ignore"):
-            slope = (neighbour - centre) / np.hypot(dr, dc)
-        better = np.isfinite(neighbour) & (slope > best)
-        best = np.where(better, slope, best)
-        target = np.where(better, index[1 + dr : rows + 1 + dr, 1 + dc : cols + 1 + dc], target)
+    slope = np.empty(smooth.shape)
+    better = np.empty(smooth.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):  # -inf - -inf outside the domain: never better
+        for dr, dc in _OFFSETS:
+            np.subtract(values[1 + dr : rows + 1 + dr, 1 + dc : cols + 1 + dc], centre, out=slope)
+            if dr and dc:
+                np.divide(slope, _DIAGONAL, out=slope)
+            np.greater(slope, best, out=better)
+            np.copyto(best, slope, where=better)
+            np.copyto(target, index[1 + dr : rows + 1 + dr, 1 + dc : cols + 1 + dc], where=better)
     pointer = target.ravel()
     while True:
         jumped = pointer[pointer]
         if np.array_equal(jumped, pointer):
             break
         pointer = jumped
-    tops = np.unique(pointer[domain.ravel()])
-    labels = np.zeros(rows * cols, dtype=np.int64)
-    labels[domain.ravel()] = np.searchsorted(tops, pointer[domain.ravel()]) + 1
-    return labels.reshape(rows, cols)
+    inside = domain.ravel()
+    tops = np.flatnonzero(inside & (pointer == np.arange(rows * cols)))
+    number = np.zeros(rows * cols, dtype=np.int64)
+    number[tops] = np.arange(1, len(tops) + 1)
+    return np.where(inside, number[pointer], 0).reshape(rows, cols)
 
 
 def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], float]:
@@ -122,18 +130,20 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
 def _basin_peaks(
     values: np.ndarray, labels: np.ndarray, count: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each basin's (1..count) highest value and the (row, col) of that cell.
+    """Each basin's (1..count) highest value and the (row, col) of that cell (of several
+    equal highest cells, the first in row-major order). `values` is finite where labels > 0.
 
-    What `ndimage.maximum` and `ndimage.maximum_position` return, done as they do it (sort all
-    values, the last cell of each label wins) but with one sort instead of one each: the same
-    sort of the same values, so the same cell wins a tie. The sort is most of detection's cost.
+    A scatter-maximum over the cells and one comparison, where a sort of all the values
+    (what `ndimage.maximum_position` does) would be most of detection's cost.
     """
-    order = values.ravel().argsort()
-    ordered_labels = labels.ravel()[order]
-    peaks = np.zeros(count + 1)
-    peaks[ordered_labels] = values.ravel()[order]
+    flat_labels = labels.ravel()
+    flat_values = values.ravel()
+    labelled = np.flatnonzero(flat_labels)
+    peaks = np.full(count + 1, -np.inf)
+    np.maximum.at(peaks, flat_labels[labelled], flat_values[labelled])
+    highest = labelled[flat_values[labelled] == peaks[flat_labels[labelled]]]
     cell = np.zeros(count + 1, dtype=np.int64)
-    cell[ordered_labels] = order
+    cell[flat_labels[highest[::-1]]] = highest[::-1]  # the last assignment wins: the first cell
     return peaks[1:], np.column_stack(np.unravel_index(cell[1:], values.shape))
 
 
@@ -183,7 +193,9 @@ class Surface:
     smooth: np.ndarray  # relief (`relief`) lightly smoothed: basins and footprints
     coarse: np.ndarray  # relief smoothed more: peak heights and saddles without noise bumps
     surface: np.ndarray  # silo-frame z, NaN outside the region
-    columns: np.ndarray  # m³ per cell, the engine's `denoised_columns`
+    columns: (
+        np.ndarray
+    )  # m³ per cell: the volume's columns (`counted` layer) or over the background
     xs: np.ndarray
     ys: np.ndarray
 
@@ -199,8 +211,12 @@ class Surface:
         smooth = masked_smooth(rise, region, max(BASIN_SMOOTHING_M / step, 1.0))
         coarse = masked_smooth(rise, region, max(PEAK_SMOOTHING_M / step, 1.0))
         surface = np.where(region, heightmap.heights.astype(float), np.nan)
-        volume_base = base if background_m is None else surface - rise
-        columns = denoised_columns(grid, surface, volume_base, DENOISE_SCALE_M) * grid.cell_area
+        if background_m is None and heightmap.counted is not None:
+            counted = counted_columns(grid, heightmap.counted)  # the volume's own columns
+        else:
+            volume_base = base if background_m is None else surface - rise
+            counted = denoised_columns(grid, surface, volume_base, DENOISE_SCALE_M)
+        columns = counted * grid.cell_area
         xs, ys = heightmap.cell_centres()
         return cls(heightmap, floor_z, smooth, coarse, surface, columns, xs, ys)
 
