@@ -54,7 +54,10 @@ class ConfigError(Exception):
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # defer_build: a model's validator is built when first used, so `process` (which validates
+    # a scan's reconstruction, detection and calibration settings) does not build the rest;
+    # sections default through default_factory for the same reason
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
 
 
 def _host_name(host: str) -> str:
@@ -344,8 +347,8 @@ class MqttConfig(Strict):
     outbox_max_bytes: int = Field(default=500_000_000, ge=100_000)
     outbox_max_age_days: float = Field(default=30.0, gt=0)
     shutdown_timeout_s: float = Field(default=5.0, ge=0, le=MAX_DURATION_S)
-    sparkplug: SparkplugConfig = SparkplugConfig()
-    homeassistant: HomeAssistantConfig = HomeAssistantConfig()
+    sparkplug: SparkplugConfig = Field(default_factory=SparkplugConfig)
+    homeassistant: HomeAssistantConfig = Field(default_factory=HomeAssistantConfig)
 
     @model_validator(mode="after")
     def _consistent(self) -> MqttConfig:
@@ -588,17 +591,17 @@ class LiveConfig(Strict):
 
 class Config(Strict):
     silo: SiloConfig
-    reconstruction: ReconstructionConfig = ReconstructionConfig()
-    detection: DetectionConfig = DetectionConfig()
+    reconstruction: ReconstructionConfig = Field(default_factory=ReconstructionConfig)
+    detection: DetectionConfig = Field(default_factory=DetectionConfig)
     cameras: Annotated[list[CameraConfig], Field(min_length=1)]
-    simulation: SimulationConfig = SimulationConfig()
-    mqtt: MqttConfig = MqttConfig()
-    schedule: ScheduleConfig = ScheduleConfig()
-    audit: AuditConfig = AuditConfig()
-    alarms: AlarmsConfig = AlarmsConfig()
-    metrics: MetricsConfig = MetricsConfig()
-    calibration: CalibrationConfig = CalibrationConfig()
-    live: LiveConfig = LiveConfig()
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig)
+    mqtt: MqttConfig = Field(default_factory=MqttConfig)
+    schedule: ScheduleConfig = Field(default_factory=ScheduleConfig)
+    audit: AuditConfig = Field(default_factory=AuditConfig)
+    alarms: AlarmsConfig = Field(default_factory=AlarmsConfig)
+    metrics: MetricsConfig = Field(default_factory=MetricsConfig)
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    live: LiveConfig = Field(default_factory=LiveConfig)
 
     @model_validator(mode="after")
     def _grid_fits(self) -> Config:
