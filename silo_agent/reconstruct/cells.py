@@ -86,6 +86,138 @@ def voxel_downsample(
     return (sums / counts[:, None]).astype(np.float32), camera[order][starts]
 
 
+@dataclass(frozen=True)
+class _Segments:
+    """The runs of the sorted key, one per (cell, height bin, camera) holding points."""
+
+    count: np.ndarray  # points in the segment
+    camera: np.ndarray
+    bin: np.ndarray  # (cell, height bin) key, ascending
+    z_sum: np.ndarray  # the points' heights above `z0`, summed (metres)
+    z0: float
+    height_bits: int  # bits of the height bin in `bin`
+    bin_width_m: float
+
+
+def _segments(
+    points: np.ndarray,
+    camera: np.ndarray,
+    cell: np.ndarray,
+    n_cells: int,
+    n_cams: int,
+    eps_m: float,
+) -> _Segments:
+    """One sort: key = (cell, height bin of eps/2, camera, height within the bin), each field as
+    narrow as the data allows; each (cell, bin, camera) is then a run of the sorted key, a
+    "segment", and the rest works on segments. The key and its sort die here: a fresh process
+    pays for every page it touches, so a stage's scratch arrays go when it ends."""
+    z = points[:, 2]
+    z0 = float(z.min())
+    scaled = z - z0
+    scaled *= 1.0 / Z_QUANTUM_M
+    z_q = np.round(scaled, out=scaled).astype(np.int64)
+    del scaled
+    bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
+    height_bits = max(1, (int(z_q.max()) >> bin_bits).bit_length())  # bins above z0
+    cam_bits = max(1, (n_cams - 1).bit_length())
+    sorted_bits = max(1, (n_cells - 1).bit_length()) + height_bits + cam_bits
+    if sorted_bits + bin_bits > 63:
+        raise ValueError(
+            f"height span {float(z.max()) - z0:.1f} m over {n_cells} cells does not fit the "
+            "sort key; crop the cloud (ceiling_z) or use a coarser grid"
+        )
+    fine_mask = (1 << bin_bits) - 1
+    key = cell << (height_bits + cam_bits + bin_bits)
+    key |= (z_q >> bin_bits) << (cam_bits + bin_bits)
+    key |= camera.astype(np.int64) << bin_bits
+    z_q &= fine_mask
+    key |= z_q
+    del z_q
+    key = _radix_sorted(key, bin_bits, bin_bits + sorted_bits)
+    segment_key = key >> bin_bits
+    s_start = _run_starts(segment_key)
+    s_n = np.diff(np.append(s_start, len(key)))
+    key &= fine_mask
+    s_fine = np.add.reduceat(key, s_start)  # heights within the bin, summed
+    del key
+    s_key = segment_key[s_start]
+    del segment_key, s_start
+    s_cam = s_key & ((1 << cam_bits) - 1)
+    s_bin = s_key >> cam_bits  # (cell, height bin)
+    del s_key
+    s_z_sum = (s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits) + s_fine) * Z_QUANTUM_M
+    return _Segments(s_n, s_cam, s_bin, s_z_sum, z0, height_bits, Z_QUANTUM_M * (1 << bin_bits))
+
+
+@dataclass(frozen=True)
+class _Clusters:
+    """Density clusters of the cells' heights, in cell order."""
+
+    count: np.ndarray  # points
+    cell: np.ndarray
+    z: np.ndarray  # camera-balanced centroid height, silo frame
+
+
+def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: int) -> _Clusters:
+    """1-D density clustering (DBSCAN on a height histogram) of every cell at once: a bin is
+    core when its 3-bin neighbourhood holds CORE_DENSITY x the cell's densest one; clusters
+    are runs of core bins in a cell, split by a gap of more than eps."""
+    s_n, s_bin, height_bits = segments.count, segments.bin, segments.height_bits
+    b_start = _run_starts(s_bin)
+    b_n = np.add.reduceat(s_n, b_start)
+    b_key = s_bin[b_start]
+    b_cell = b_key >> height_bits
+    cell_of_bins = _run_starts(b_cell)
+    # bins i-1 and i are adjacent heights of one cell (consecutive keys: same cell, next bin)
+    adjacent = b_key[1:] - b_key[:-1] == 1
+    adjacent[cell_of_bins[1:] - 1] = False
+    density = b_n.copy()
+    density[1:] += np.where(adjacent, b_n[:-1], 0)
+    density[:-1] += np.where(adjacent, b_n[1:], 0)
+    del adjacent, b_n
+    bins_per_cell = np.diff(np.append(cell_of_bins, len(b_key)))
+    peak = np.repeat(np.maximum.reduceat(density, cell_of_bins), bins_per_cell)
+    core = density >= CORE_DENSITY * peak
+    del density, peak, bins_per_cell, cell_of_bins
+
+    c_bin = np.flatnonzero(core)
+    del core
+    bin_width = segments.bin_width_m
+    gap_bins = max(1, int(np.ceil(eps_m / bin_width)))
+    new_cluster = np.ones(len(c_bin), dtype=bool)
+    new_cluster[1:] = (b_cell[c_bin[1:]] != b_cell[c_bin[:-1]]) | (
+        b_key[c_bin[1:]] - b_key[c_bin[:-1]] > gap_bins
+    )
+    cluster_of_core_bin = np.cumsum(new_cluster) - 1
+    n_clusters = int(new_cluster.sum())
+    # a surface is thin: a cluster taller than a double surface is something standing on the
+    # grain (a wall seen through depth noise, a post) and only its lowest part is grain
+    bottom = b_key[c_bin[new_cluster]][cluster_of_core_bin]
+    thin = b_key[c_bin] - bottom <= double_surface / bin_width
+    bin_cluster = np.full(len(b_key), -1, dtype=np.int64)
+    bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
+    segment_cluster = np.repeat(bin_cluster, np.diff(np.append(b_start, len(s_bin))))
+    c_cell = b_cell[c_bin[new_cluster]]
+    del bin_cluster, b_start, b_key, b_cell, c_bin, thin, bottom
+    member = np.flatnonzero(segment_cluster >= 0)
+    m_cluster, m_n = segment_cluster[member], s_n[member]
+    del segment_cluster
+    c_n = np.bincount(m_cluster, m_n, n_clusters)
+
+    # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster
+    pair = m_cluster * n_cams + segments.camera[member]
+    del m_cluster
+    size = n_clusters * n_cams
+    pair_n = np.bincount(pair, m_n, size)
+    present = np.flatnonzero(pair_n)
+    pair_mean = np.bincount(pair, segments.z_sum[member], size)[present] / pair_n[present]
+    pair_cluster = present // n_cams
+    c_z = segments.z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
+        pair_cluster, minlength=n_clusters
+    )
+    return _Clusters(c_n, c_cell, c_z)
+
+
 def clustered_means(
     points: np.ndarray,
     camera: np.ndarray,
@@ -114,88 +246,15 @@ def clustered_means(
         variance = np.maximum(squares - total * total / count, 0.0) / (count - 1)
         typical = float(np.sqrt(np.median(variance))) if np.any(crowded) else 0.0
         eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
+        del crowded, count, total, squares, variance
 
-    # ---- one sort: key = (cell, height bin of eps/2, camera, height within the bin), each field
-    # as narrow as the data allows; each (cell, bin, camera) is then a run of the sorted key, a
-    # "segment", and the rest works on segments
-    z = points[:, 2]
-    z0 = float(z.min())
-    z_q = np.round((z - z0) * (1.0 / Z_QUANTUM_M)).astype(np.int64)
-    bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
-    height_bits = max(1, (int(z_q.max()) >> bin_bits).bit_length())  # bins above z0
     n_cams = moments.count.shape[0]
-    cam_bits = max(1, (n_cams - 1).bit_length())
-    sorted_bits = max(1, (n_cells - 1).bit_length()) + height_bits + cam_bits
-    if sorted_bits + bin_bits > 63:
-        raise ValueError(
-            f"height span {float(z.max()) - z0:.1f} m over {n_cells} cells does not fit the "
-            "sort key; crop the cloud (ceiling_z) or use a coarser grid"
-        )
-    fine_mask = (1 << bin_bits) - 1
-    key = cell << (height_bits + cam_bits + bin_bits)
-    key |= (z_q >> bin_bits) << (cam_bits + bin_bits)
-    key |= camera.astype(np.int64) << bin_bits
-    key |= z_q & fine_mask
-    key = _radix_sorted(key, bin_bits, bin_bits + sorted_bits)
-    segment_key = key >> bin_bits
-    s_start = _run_starts(segment_key)
-    s_n = np.diff(np.append(s_start, len(key)))
-    s_fine = np.add.reduceat(key & fine_mask, s_start)  # heights within the bin, summed
-    s_key = segment_key[s_start]
-    s_cam = s_key & ((1 << cam_bits) - 1)
-    s_bin = s_key >> cam_bits  # (cell, height bin)
-    s_z_sum = (s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits) + s_fine) * Z_QUANTUM_M
-
-    # ---- 1-D density clustering (DBSCAN on a height histogram): a bin is core when its 3-bin
-    # neighbourhood holds CORE_DENSITY x the cell's densest one
-    b_start = _run_starts(s_bin)
-    b_n = np.add.reduceat(s_n, b_start)
-    b_key = s_bin[b_start]
-    b_cell = b_key >> height_bits
-    cell_of_bins = _run_starts(b_cell)
-    # bins i-1 and i are adjacent heights of one cell (consecutive keys: same cell, next bin)
-    adjacent = b_key[1:] - b_key[:-1] == 1
-    adjacent[cell_of_bins[1:] - 1] = False
-    density = b_n.copy()
-    density[1:] += np.where(adjacent, b_n[:-1], 0)
-    density[:-1] += np.where(adjacent, b_n[1:], 0)
-    bins_per_cell = np.diff(np.append(cell_of_bins, len(b_key)))
-    peak = np.repeat(np.maximum.reduceat(density, cell_of_bins), bins_per_cell)
-    core = density >= CORE_DENSITY * peak
-
-    # clusters: runs of core bins in a cell, split by a gap of more than eps
-    c_bin = np.flatnonzero(core)
-    bin_width = Z_QUANTUM_M * (1 << bin_bits)
-    gap_bins = max(1, int(np.ceil(eps_m / bin_width)))
     double_surface = max(DOUBLE_SURFACE_FACTOR * eps_m, DOUBLE_SURFACE_MIN_M)
-    new_cluster = np.ones(len(c_bin), dtype=bool)
-    new_cluster[1:] = (b_cell[c_bin[1:]] != b_cell[c_bin[:-1]]) | (
-        b_key[c_bin[1:]] - b_key[c_bin[:-1]] > gap_bins
+    found = _clusters(
+        _segments(points, camera, cell, n_cells, n_cams, eps_m), eps_m, double_surface, n_cams
     )
-    cluster_of_core_bin = np.cumsum(new_cluster) - 1
-    n_clusters = int(new_cluster.sum())
-    # a surface is thin: a cluster taller than a double surface is something standing on the
-    # grain (a wall seen through depth noise, a post) and only its lowest part is grain
-    bottom = b_key[c_bin[new_cluster]][cluster_of_core_bin]
-    thin = b_key[c_bin] - bottom <= double_surface / bin_width
-    bin_cluster = np.full(len(b_key), -1, dtype=np.int64)
-    bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
-    segment_cluster = np.repeat(bin_cluster, np.diff(np.append(b_start, len(s_bin))))
-    member = np.flatnonzero(segment_cluster >= 0)
-    m_cluster, m_n = segment_cluster[member], s_n[member]
-    c_n = np.bincount(m_cluster, m_n, n_clusters)
-    c_cell = b_cell[c_bin[new_cluster]]
-
-    # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster
-    pair = m_cluster * n_cams + s_cam[member]
-    size = n_clusters * n_cams
-    pair_n = np.bincount(pair, m_n, size)
-    present = np.flatnonzero(pair_n)
-    pair_mean = np.bincount(pair, s_z_sum[member], size)[present] / pair_n[present]
-    pair_cluster = present // n_cams
-    c_z = z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
-        pair_cluster, minlength=n_clusters
-    )
+    c_n, c_cell, c_z = found.count, found.cell, found.z
+    n_clusters = len(c_n)
 
     # ---- noise: clusters too small, absolutely or relative to the cell's largest cluster
     cell_start = _run_starts(c_cell)

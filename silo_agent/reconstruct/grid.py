@@ -118,33 +118,32 @@ class FusedCloud:
 
 
 def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCloud:
-    """Paper 2.3.1: transform every cloud by its extrinsic, crop the ceiling and the region."""
+    """Paper 2.3.1: transform every cloud by its extrinsic, crop the ceiling and the region.
+
+    Each camera's kept points are written straight into arrays sized for all the points (the
+    pages past the last kept point are never touched), not gathered and concatenated: the
+    fused cloud never exists twice."""
     rows, cols = grid.shape
     inside_flat = grid.inside.ravel() > 0
-    kept_points, kept_camera, kept_cell = [], [], []
+    total = sum(len(c.points) for c in cameras)
+    points = np.empty((total, 3), np.float32)
+    camera_of = np.empty(total, np.uint8)
+    cell = np.empty(total, np.int64)
     moments = CellMoments.zeros(len(cameras), rows * cols)
-    raw = 0
+    used = 0
     for index, camera in enumerate(cameras):
-        points = camera.points_in_silo()
-        raw += len(points)
-        row, col = grid.cell_index(points[:, 0], points[:, 1])
+        silo = camera.points_in_silo()
+        row, col = grid.cell_index(silo[:, 0], silo[:, 1])
         keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
         if site.ceiling_z is not None:
-            keep &= points[:, 2] <= site.ceiling_z
-        cell = np.where(keep, row * cols + col, 0)
-        keep &= inside_flat[cell]
+            keep &= silo[:, 2] <= site.ceiling_z
+        flat = np.where(keep, row * cols + col, 0)
+        keep &= inside_flat[flat]
         kept = np.flatnonzero(keep)
-        kept_points.append(points.take(kept, axis=0))
-        kept_cell.append(cell.take(kept))
-        kept_camera.append(np.full(len(kept), index, dtype=np.uint8))
-        moments.set_camera(index, kept_points[-1], kept_cell[-1])
-    if not kept_points:
-        empty = np.empty((0, 3), np.float32)
-        return FusedCloud(empty, np.empty(0, np.uint8), np.empty(0, np.int64), 0, moments)
-    return FusedCloud(
-        np.concatenate(kept_points),
-        np.concatenate(kept_camera),
-        np.concatenate(kept_cell),
-        raw,
-        moments,
-    )
+        end = used + len(kept)
+        np.take(silo, kept, axis=0, out=points[used:end])
+        np.take(flat, kept, out=cell[used:end])
+        camera_of[used:end] = index
+        moments.set_camera(index, points[used:end], cell[used:end])
+        used = end
+    return FusedCloud(points[:used], camera_of[:used], cell[:used], total, moments)
