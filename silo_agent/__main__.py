@@ -1,3 +1,3 @@
-from silo_agent.cli import main
+from silo_agent.cli import entry
 
-raise SystemExit(main())
+entry()

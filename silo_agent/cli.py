@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 from silo_agent.choices import (
     DEFAULT_GRAIN,
@@ -681,7 +682,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    return _dispatch(build_parser().parse_args(argv))
+
+
+def entry() -> NoReturn:
+    """`silo-agent` and `python -m silo_agent`: `main`, then exit with its status.
+
+    After `process` the interpreter is not torn down: its output is flushed and the process
+    ends at once, which saves a one-off `process` about 0.03 s of freeing modules and objects
+    that the system reclaims anyway (`process` writes no file and holds no lock)."""
+    args = build_parser().parse_args()
+    status = _dispatch(args)
+    if args.handler is cmd_process:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:  # a closed pipe loses the output either way; the status still says what ran
+            os._exit(status)
+    raise SystemExit(status)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    # pydantic scans every installed package for plugins at its first model (~0.02 s, paid by
+    # every one-off `process`); the agent uses none. An explicit setting, even empty, wins.
+    os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")
     from silo_agent.heap import keep_freed_memory
 
     keep_freed_memory()
@@ -705,4 +729,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    entry()
