@@ -260,12 +260,13 @@ def detect_piles(surface: Surface, settings: DetectionConfig) -> list[Pile]:
         settings.min_prominence_m,
         settings.min_separation_m / surface.heightmap.step,
     )
+    flat = labels.ravel()
+    labelled = np.flatnonzero(flat)
+    tallest = np.full(int(labels.max()) + 1, -np.inf)
+    np.maximum.at(tallest, flat[labelled], coarse.ravel()[labelled])
     piles = []
-    for k in np.unique(labels[labels > 0]):
-        mine = labels == k
-        if float(np.max(coarse[mine])) < settings.min_height_m:
-            continue
-        pile = surface.pile(mine, "geometric")
+    for k in np.flatnonzero(tallest >= settings.min_height_m):  # basins high enough to be piles
+        pile = surface.pile(labels == k, "geometric")
         if pile.footprint_m2 >= settings.min_area_m2:
             piles.append(pile)
     piles.sort(key=lambda p: -p.volume_m3)

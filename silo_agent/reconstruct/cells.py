@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from silo_agent.reconstruct.grid import CellMoments, Grid
+from silo_agent.reconstruct.residual import median
 
 Z_QUANTUM_M = 1e-4  # height resolution inside the sort key
 CAMERA_BITS = 8  # voxel key: up to 256 cameras
@@ -264,7 +265,7 @@ def clustered_means(
         total = moments.sum_z.sum(axis=0)[crowded]
         squares = moments.sum_zz.sum(axis=0)[crowded]
         variance = np.maximum(squares - total * total / count, 0.0) / (count - 1)
-        typical = float(np.sqrt(np.median(variance))) if np.any(crowded) else 0.0
+        typical = float(np.sqrt(median(variance))) if np.any(crowded) else 0.0
         eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
         del crowded, count, total, squares, variance
 

@@ -43,6 +43,19 @@ class PairResidual:
         return {"median_m": self.median_m, "mad_m": self.mad_m, "cells": self.cells}
 
 
+def median(values: np.ndarray) -> float:
+    """`np.median` of a 1-D array, as it computes it (a partition; the mean of the two middle
+    values for an even count), without the numpy.ma import np.median makes on its first call."""
+    count = len(values)
+    if count == 0:
+        raise ValueError("median of no values")
+    middle = count // 2
+    if count % 2:
+        return float(np.partition(values, middle)[middle])
+    low, high = np.partition(values, [middle - 1, middle])[middle - 1 : middle + 1]
+    return float((low + high) / 2.0)
+
+
 def pair_key(a: str, b: str) -> str:
     """The published name of a camera pair: `"<serial a>|<serial b>"`."""
     return f"{a}|{b}"
@@ -99,8 +112,8 @@ def registration_residuals(
                 - gx[both] * (mx[i, both] - mx[j, both])
                 - gy[both] * (my[i, both] - my[j, both])
             )
-            median = float(np.median(diff))
-            mad = float(np.median(np.abs(diff - median)))
-            residual = PairResidual(serials[i], serials[j], median, mad, n)
+            middle = median(diff)
+            mad = median(np.abs(diff - middle))
+            residual = PairResidual(serials[i], serials[j], middle, mad, n)
             out[residual.key] = residual
     return out
