@@ -366,3 +366,14 @@ def test_both_sorts_of_the_cell_key_give_the_same_cells(cone_scan_4: Scan, monke
     assert fast.volume_m3 == radix.volume_m3
     assert np.array_equal(fast.heightmap.heights, radix.heightmap.heights, equal_nan=True)
     assert np.array_equal(fast.heightmap.observed, radix.heightmap.observed)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 10, 11, 1000, 1001])
+def test_median_is_numpys(count: int) -> None:
+    from silo_agent.reconstruct.residual import median
+
+    rng = np.random.default_rng(count)
+    for values in (rng.normal(size=count), rng.integers(0, 3, count).astype(float)):
+        assert median(values) == float(np.median(values))
+    with pytest.raises(ValueError):
+        median(np.array([]))
