@@ -24,6 +24,15 @@ def test_box_sum_is_ndimage_uniform_filter_times_the_window(shape, size, mode) -
     )
 
 
+def test_box_sum_filters_stacked_grids_each_on_its_own() -> None:
+    rng = np.random.default_rng(7)
+    first, second = rng.random((30, 40)), rng.random((30, 40))
+    for mode in ("constant", "nearest"):
+        stacked = filters.box_sum(np.stack([first, second]), 5, mode)
+        assert np.array_equal(stacked[0], filters.box_sum(first, 5, mode))
+        assert np.array_equal(stacked[1], filters.box_sum(second, 5, mode))
+
+
 def test_box_sum_of_a_mask_counts_exactly() -> None:
     """masked_smooth relies on it: its weights are whole numbers, compared with 0.5."""
     mask = np.random.default_rng(3).random((50, 60)) < 0.3

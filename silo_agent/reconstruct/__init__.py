@@ -146,10 +146,9 @@ def _slope_corrected(
     it): outside a round region there is none, and a plain mean would carry that NaN along.
     """
     surface = np.isfinite(filled)
+    total, count = box_sum(np.stack([np.where(surface, filled, 0.0), surface]), 3, "nearest")
     with np.errstate(invalid="ignore", divide="ignore"):
-        smooth = box_sum(np.where(surface, filled, 0.0), 3, "nearest") / box_sum(
-            surface.astype(np.float64), 3, "nearest"
-        )
+        smooth = total / count
     grad_y, grad_x = np.gradient(smooth, grid.step)
     xs, ys = grid.centres()
     shift = grad_x * (xs - cells_x) + grad_y * (ys - cells_y)

@@ -22,34 +22,32 @@ BoxMode = Literal["constant", "nearest"]  # zeros, or the edge cell repeated, ou
 
 def box_sum(values: np.ndarray, size: int, mode: BoxMode = "constant") -> np.ndarray:
     """Sum over the `size` x `size` window centred on each cell (`size` odd, `values` finite):
-    `size`² times `ndimage.uniform_filter(values, size, mode=mode)`. As with ndimage's running
-    sums, a NaN would spoil the rest of its row or column."""
+    `size`² times `ndimage.uniform_filter(values, size, mode=mode)` over the last two axes.
+    Leading axes stack grids that are filtered together, each on its own: the passes' loops
+    then run once for all of them. As with ndimage's running sums, a NaN would spoil the rest
+    of its row or column."""
     if size < 1 or size % 2 != 1:
         raise ValueError(f"window size must be odd and positive, got {size}")
     down = _box_sum_down(values, size, mode)
-    return _swap(_box_sum_down(np.ascontiguousarray(_swap(down)), size, mode))
-
-
-def _swap(grid: np.ndarray) -> np.ndarray:
-    """The first two axes exchanged (a view)."""
-    return grid.swapaxes(0, 1)
+    across = _box_sum_down(np.ascontiguousarray(down.swapaxes(-1, -2)), size, mode)
+    return across.swapaxes(-1, -2)
 
 
 def _box_sum_down(values: np.ndarray, size: int, mode: BoxMode) -> np.ndarray:
-    """Window sums along axis 0: differences of the running total of the rows padded by half a
-    window (and one more row in front, which every window subtracts). The running total adds
-    whole rows: numpy's cumsum along axis 0 walks each column separately and is several times
+    """Window sums along axis -2: differences of the running total of the rows padded by half
+    a window (and one more row in front, which every window subtracts). The running total adds
+    whole rows: numpy's cumsum down the rows walks each column separately and is several times
     slower."""
-    rows = values.shape[0]
+    rows = values.shape[-2]
     half = size // 2
-    total = np.zeros((rows + size, *values.shape[1:]))
-    total[half + 1 : half + 1 + rows] = values
+    total = np.zeros((*values.shape[:-2], rows + size, values.shape[-1]))
+    total[..., half + 1 : half + 1 + rows, :] = values
     if mode == "nearest":
-        total[1 : half + 1] = values[:1]
-        total[half + 1 + rows :] = values[-1:]
+        total[..., 1 : half + 1, :] = values[..., :1, :]
+        total[..., half + 1 + rows :, :] = values[..., -1:, :]
     for row in range(1, rows + size):
-        np.add(total[row - 1], total[row], out=total[row])
-    return total[size:] - total[:rows]
+        np.add(total[..., row - 1, :], total[..., row, :], out=total[..., row, :])
+    return total[..., size:, :] - total[..., :rows, :]
 
 
 def minimum_filter(values: np.ndarray, size: int) -> np.ndarray:

@@ -16,10 +16,9 @@ def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> n
     Gaussian's grows with it. NaN outside `mask`.
     """
     size = max(3, 2 * round(sigma_cells * math.sqrt(6) / 2) + 1)
-    weight = mask.astype(np.float64)
-    total = np.where(mask, values, 0.0)
+    both = np.stack([mask.astype(np.float64), np.where(mask, values, 0.0)])
     for _ in range(2):  # sums, not means: the window's area cancels in total / weight
-        weight = box_sum(weight, size)
-        total = box_sum(total, size)
+        both = box_sum(both, size)  # weight and total filtered together
+    weight, total = both
     with np.errstate(invalid="ignore", divide="ignore"):  # weight: whole numbers, exactly
         return np.where(mask & (weight > 0.5), total / weight, np.nan)
