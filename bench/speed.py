@@ -270,18 +270,17 @@ def section_c(
 
 
 STAGES = r"""
-import json, sys, time
+import json, os, sys, time
 t = [time.perf_counter()]
 from silo_agent.cli import build_parser
 args = build_parser().parse_args(["process", *sys.argv[1:]])
 t.append(time.perf_counter())
+os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")  # as the command line does
 from silo_agent.heap import keep_freed_memory
 keep_freed_memory()
 import numpy, pydantic
 t.append(time.perf_counter())
 import silo_agent.config, silo_agent.scan, silo_agent.scan_service as service
-t.append(time.perf_counter())
-import scipy.sparse
 t.append(time.perf_counter())
 import silo_agent.reconstruct
 t.append(time.perf_counter())
@@ -294,52 +293,75 @@ result = service.analyse_scan(scan, analysis, [])
 t.append(time.perf_counter())
 print(json.dumps(service.summarise(result, scan, {}), allow_nan=False))
 t.append(time.perf_counter())
-inner = result.reconstruction.timings_s
-print(json.dumps({"steps": [b - a for a, b in zip(t, t[1:])], "inner": inner}), file=sys.stderr)
+fresh = result.reconstruction.timings_s
+again = time.perf_counter()
+warm = service.analyse_scan(scan, analysis, []).reconstruction.timings_s
+again = time.perf_counter() - again
+report = {"steps": [b - a for a, b in zip(t, t[1:])], "fresh": fresh, "warm": warm, "again": again}
+print(json.dumps(report), file=sys.stderr)
+sys.stdout.flush(); sys.stderr.flush()
+os._exit(0)  # as `silo-agent process` ends
 """
-STEP_NAMES = [
+IMPORT_STEPS = [
     "import silo_agent.cli, parse the arguments",
     "import numpy and pydantic",
     "import the config models, the scan reader and service (silo_agent.config, .scan, ...)",
-    "import scipy (its array-API layer and numpy.f2py, scipy.sparse)",
-    "import silo_agent.reconstruct (scipy.ndimage, scipy.sparse.linalg)",
+    "import silo_agent.reconstruct (numpy only: no scipy on the scan path)",
     "import silo_agent.detect",
-    "read the scan (4 PLYs, 1.6 M points; manifest checked)",
-    "reconstruct and detect (`analyse`)",
-    "print the JSON",
 ]
+READ_STEP = "read the scan (4 PLYs, 1.6 M points; manifest checked)"
+PRINT_STEP = "print the JSON"
 
 
 def _stages(scan_dir: Path, runs: int) -> list[str]:
     """Where one `process` run spends its time: the same steps as `process` runs, timed inside
-    a fresh interpreter, plus the interpreter's own start (`python -c pass`)."""
+    a fresh interpreter, plus the interpreter's own start (`python -c pass`) and its end (the
+    script's wall time less its steps). The analysis is then run again in the same process:
+    the warm column is what the same stage costs once its memory has been touched."""
     start = statistics.median(_wall([sys.executable, "-c", "pass"])[0] for _ in range(runs))
-    steps, inner = [], []
+    walls, reports = [], []
     for _ in range(runs):
-        _, _, err = _wall(
+        wall, _, err = _wall(
             [sys.executable, "-c", STAGES, str(scan_dir), "--grid-step", "0.01", "--json"]
         )
         report = json.loads(err.splitlines()[-1])
-        steps.append(report["steps"])
-        inner.append(report["inner"])
-    median = [statistics.median(column) for column in zip(*steps, strict=True)]
-    reconstruct_s = statistics.median(sum(i.values()) for i in inner)
+        walls.append(wall - report["again"])
+        reports.append(report)
+
+    def med(values: Sequence[float]) -> float:
+        return statistics.median(values)
+
+    steps = [med(column) for column in zip(*(r["steps"] for r in reports), strict=True)]
+    *imports, read, analyse, printed = steps
+    stages = list(reports[0]["fresh"])
+    fresh = {k: med([r["fresh"][k] for r in reports]) for k in stages}
+    warm = {k: med([r["warm"][k] for r in reports]) for k in stages}
+    detect = med([r["steps"][-2] - sum(r["fresh"].values()) for r in reports])
+    ended = med([w - start - sum(r["steps"]) for w, r in zip(walls, reports, strict=True)])
+    total = med(walls)
     lines = [
         f"### Where a single `process` spends its time (median of {runs} fresh processes)",
         "",
-        "The steps `process` takes, in its order, each timed inside one fresh interpreter.",
+        "The steps `process` takes, in its order, each timed inside one fresh interpreter; the"
+        " reconstruction's stages as it times them. The last column runs the same analysis"
+        " again in that process: the difference is the first touch of the stage's memory"
+        " (page faults), which a batch pays once.",
         "",
-        "| step | s |",
-        "|---|---|",
-        f"| start the interpreter (`python -c pass`, separate runs) | {start:.3f} |",
+        "| step | fresh process s | again, same process s |",
+        "|---|---|---|",
+        f"| start the interpreter (`python -c pass`, separate runs) | {start:.3f} | |",
     ]
-    lines += [f"| {name} | {s:.3f} |" for name, s in zip(STEP_NAMES, median, strict=True)]
+    lines += [f"| {name} | {s:.3f} | |" for name, s in zip(IMPORT_STEPS, imports, strict=True)]
+    lines.append(f"| {READ_STEP} | {read:.3f} | |")
+    lines += [f"| reconstruct: {k} | {fresh[k]:.3f} | {warm[k]:.3f} |" for k in stages]
     lines += [
-        f"| **total** | **{start + sum(median):.3f}** |",
+        f"| detect piles (the rest of `analyse`) | {detect:.3f} | |",
+        f"| {PRINT_STEP} | {printed:.3f} | |",
+        f"| end the process (flush, `os._exit`) | {ended:.3f} | |",
+        f"| **total** (the script's wall time, median) | **{total:.3f}** | |",
         "",
-        f"Of `analyse`, the reconstruction's own stages take {reconstruct_s:.3f} s in this fresh"
-        " process (section (a): the same work in a warm process); the rest is pile detection"
-        " and the first touch of every array.",
+        f"Reconstruction {sum(fresh.values()):.3f} s in the fresh process, {sum(warm.values()):.3f}"
+        f" s again in the same process; `analyse` took {analyse:.3f} s in all.",
         "",
     ]
     return lines
@@ -413,8 +435,9 @@ def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None, runs: int 
         f"### Import time by package (`python -X importtime`, median of {runs})",
         "",
         "Self time of every module imported, summed per top-level package (`numpy.f2py` apart:"
-        " numpy loads it lazily, and scipy's array-API layer, which every scipy submodule used"
-        " here imports, touches it). Packages under 10 ms in every column are in the total only."
+        " numpy loads it lazily, and scipy 1.17's array-API layer, which every scipy submodule"
+        " imports, touches it; the scan path no longer imports scipy). Packages under 10 ms in"
+        " every column are in the total only."
         + (
             ""
             if baseline is None
