@@ -18,7 +18,7 @@ from silo_agent.geometry import points_outside
 from silo_agent.heightmap import HeightMap
 from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
-from silo_agent.reconstruct.filters import box_sum, dilate_cross, maximum_filter, minimum_filter
+from silo_agent.reconstruct.filters import box_mean, dilate_cross, maximum_filter, minimum_filter
 from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.reconstruct.smooth import masked_smooth
@@ -146,7 +146,7 @@ def _slope_corrected(
     it): outside a round region there is none, and a plain mean would carry that NaN along.
     """
     surface = np.isfinite(filled)
-    total, count = box_sum(np.stack([np.where(surface, filled, 0.0), surface]), 3, "nearest")
+    total, count = box_mean(np.stack([np.where(surface, filled, 0.0), surface]), 3, "nearest")
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth = total / count
     grad_y, grad_x = np.gradient(smooth, grid.step)

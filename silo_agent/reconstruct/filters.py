@@ -4,11 +4,11 @@ maximum, and dilation by the 4-neighbour cross. Grids are 2-D.
 scipy.ndimage has all of them, but a one-off `silo-agent process` would pay about 0.25 s to
 import it (its array-API layer copies numpy's namespace and so loads numpy.f2py, numpy.testing
 and more), far more than the filters take to run. Each function here gives what its ndimage
-counterpart gives in the mode the engine uses (tests/test_filters.py compares them): box sums
-from cumulative sums, minimum and maximum by van Herk / Gil-Werman block scans, so each costs
-O(cells) whatever the window. Every filter runs down the columns (axis 0) of the grid, then of
-its transpose; the loops step through the rows of a window or a grid, each step one operation
-on whole rows, never a loop over cells.
+counterpart gives in the mode the engine uses, to the bit (tests/test_filters.py compares
+them): box means by ndimage's own running sums, minimum and maximum by van Herk / Gil-Werman
+block scans, so each costs O(cells) whatever the window. Every filter runs down the columns
+(axis 0) of the grid, then of its transpose; the loops step through the rows of a window or a
+grid, each step one operation on whole rows, never a loop over cells.
 """
 
 from __future__ import annotations
@@ -20,34 +20,42 @@ import numpy as np
 BoxMode = Literal["constant", "nearest"]  # zeros, or the edge cell repeated, outside the grid
 
 
-def box_sum(values: np.ndarray, size: int, mode: BoxMode = "constant") -> np.ndarray:
-    """Sum over the `size` x `size` window centred on each cell (`size` odd, `values` finite):
-    `size`² times `ndimage.uniform_filter(values, size, mode=mode)` over the last two axes.
-    Leading axes stack grids that are filtered together, each on its own: the passes' loops
-    then run once for all of them. As with ndimage's running sums, a NaN would spoil the rest
-    of its row or column."""
+def box_mean(values: np.ndarray, size: int, mode: BoxMode = "constant") -> np.ndarray:
+    """`ndimage.uniform_filter(values, size, mode=mode)` over the last two axes (`size` odd),
+    to the bit: the same running sums added in the same order. Leading axes stack grids that
+    are filtered together, each on its own, so the passes' loops run once for all of them.
+    As in ndimage, a NaN spoils the rest of its row or column: callers pass finite values."""
     if size < 1 or size % 2 != 1:
         raise ValueError(f"window size must be odd and positive, got {size}")
-    down = _box_sum_down(values, size, mode)
-    across = _box_sum_down(np.ascontiguousarray(down.swapaxes(-1, -2)), size, mode)
+    if size == 1:  # as ndimage: the values themselves
+        return values.astype(np.float64)
+    down = _uniform_down(values, size, mode)
+    across = _uniform_down(np.ascontiguousarray(down.swapaxes(-1, -2)), size, mode)
     return across.swapaxes(-1, -2)
 
 
-def _box_sum_down(values: np.ndarray, size: int, mode: BoxMode) -> np.ndarray:
-    """Window sums along axis -2: differences of the running total of the rows padded by half
-    a window (and one more row in front, which every window subtracts). The running total adds
-    whole rows: numpy's cumsum down the rows walks each column separately and is several times
-    slower."""
+def _uniform_down(values: np.ndarray, size: int, mode: BoxMode) -> np.ndarray:
+    """`ndimage.uniform_filter1d` along axis -2: a running sum of the padded rows (the first
+    window added row by row, then each step adds the entering row minus the leaving one),
+    each output that sum divided by `size`. The steps' differences are taken at once; only
+    their sequential total is a loop, over rows, each step one operation on whole rows."""
     rows = values.shape[-2]
     half = size // 2
-    total = np.zeros((*values.shape[:-2], rows + size, values.shape[-1]))
-    total[..., half + 1 : half + 1 + rows, :] = values
+    padded = np.zeros((*values.shape[:-2], rows + size - 1, values.shape[-1]))
+    padded[..., half : half + rows, :] = values
     if mode == "nearest":
-        total[..., 1 : half + 1, :] = values[..., :1, :]
-        total[..., half + 1 + rows :, :] = values[..., -1:, :]
-    for row in range(1, rows + size):
-        np.add(total[..., row - 1, :], total[..., row, :], out=total[..., row, :])
-    return total[..., size:, :] - total[..., :rows, :]
+        padded[..., :half, :] = values[..., :1, :]
+        padded[..., half + rows :, :] = values[..., -1:, :]
+    running = np.empty((*values.shape[:-2], rows, values.shape[-1]))
+    first = running[..., 0, :]
+    first[...] = padded[..., 0, :]
+    for row in range(1, size):
+        first += padded[..., row, :]
+    np.subtract(padded[..., size:, :], padded[..., : rows - 1, :], out=running[..., 1:, :])
+    for row in range(1, rows):
+        np.add(running[..., row - 1, :], running[..., row, :], out=running[..., row, :])
+    running /= size
+    return running
 
 
 def minimum_filter(values: np.ndarray, size: int) -> np.ndarray:

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from silo_agent.reconstruct.filters import box_sum
+from silo_agent.reconstruct.filters import box_mean
 
 
 def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> np.ndarray:
@@ -17,8 +17,8 @@ def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> n
     """
     size = max(3, 2 * round(sigma_cells * math.sqrt(6) / 2) + 1)
     both = np.stack([mask.astype(np.float64), np.where(mask, values, 0.0)])
-    for _ in range(2):  # sums, not means: the window's area cancels in total / weight
-        both = box_sum(both, size)  # weight and total filtered together
+    for _ in range(2):
+        both = box_mean(both, size)  # weight and total filtered together
     weight, total = both
-    with np.errstate(invalid="ignore", divide="ignore"):  # weight: whole numbers, exactly
-        return np.where(mask & (weight > 0.5), total / weight, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(mask & (weight > 1e-12), total / weight, np.nan)
