@@ -147,11 +147,10 @@ def _slope_corrected(
     """
     surface = np.isfinite(filled)
     total, count = box_mean(np.stack([np.where(surface, filled, 0.0), surface]), 3, "nearest")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        smooth = total / count
-    grad_y, grad_x = np.gradient(smooth, grid.step)
     xs, ys = grid.centres()
-    shift = grad_x * (xs - cells_x) + grad_y * (ys - cells_y)
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN where no cell has a surface
+        grad_y, grad_x = np.gradient(total / count, grid.step)
+        shift = grad_x * (xs - cells_x) + grad_y * (ys - cells_y)
     return np.where(observed, filled + np.nan_to_num(shift), filled)
 
 
