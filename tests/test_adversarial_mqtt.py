@@ -324,8 +324,8 @@ def test_last_will_seq_is_re_armed_before_the_session_reaches_it(
 def fill(path, count: int) -> list[int]:
     box = Outbox(path)
     seqs = [box.enqueue("t/a", lambda env: b"x").seq for _ in range(count)]
-    box.next_bd_seq()
-    box.next_bd_seq()
+    box.advance_bd_seq()
+    box.advance_bd_seq()
     box.close()
     return seqs
 
@@ -346,7 +346,7 @@ def test_corrupt_outbox_is_moved_aside_and_seq_continues(tmp_path, damage):
     with capture_logs() as logs:
         box = Outbox(path)
     assert box.next_envelope().seq > seqs[-1]
-    assert box.next_bd_seq() == 2
+    assert box.bd_seq() == 2
     if damage != "empty":  # an empty file is a valid (empty) database
         aside = box.moved_aside
         assert aside is not None and aside.exists()

@@ -7,8 +7,10 @@ import socket
 import time
 
 import pysparkplug as ps
+from structlog.testing import capture_logs
 
 from tests.support.mqtt import SILO, summary
+from tests.support.mqtt_broker import Broker
 
 NODE = f"spBv1.0/silos/{{}}/{SILO}"
 
@@ -19,6 +21,28 @@ def births(col) -> list[ps.NBirth]:
 
 def metric_map(payload) -> dict[str, ps.Metric]:
     return {m.name: m for m in payload.metrics}
+
+
+def rebirth_request() -> bytes:
+    """NCMD `Node Control/Rebirth` = true, as a host sends it (pysparkplug's encoder)."""
+    ncmd = ps.NCmd(
+        timestamp=int(time.time() * 1000),
+        metrics=(
+            ps.Metric(
+                timestamp=None,
+                name="Node Control/Rebirth",
+                datatype=ps.DataType.BOOLEAN,
+                value=True,
+            ),
+        ),
+    )
+    return ncmd.encode(include_dtypes=True)
+
+
+def failed_attempts(logs: list[dict]) -> int:
+    return sum(
+        e["event"] == "MQTT connection failed, retrying" and e["link"] == "sparkplug" for e in logs
+    )
 
 
 def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
@@ -73,18 +97,7 @@ def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
     assert metric_map(data[1])["Alarms/level_high"].value is True
 
     # rebirth on NCMD: a new NBIRTH (seq 0, same bdSeq) carrying the current values
-    ncmd = ps.NCmd(
-        timestamp=int(time.time() * 1000),
-        metrics=(
-            ps.Metric(
-                timestamp=None,
-                name="Node Control/Rebirth",
-                datatype=ps.DataType.BOOLEAN,
-                value=True,
-            ),
-        ),
-    )
-    col.publish(NODE.format("NCMD"), ncmd.encode(include_dtypes=True))
+    col.publish(NODE.format("NCMD"), rebirth_request())
     col.wait_topic(NODE.format("NBIRTH"), 2)
     rebirth = metric_map(births(col)[1])
     assert births(col)[1].seq == 0 and rebirth["bdSeq"].value == 0
@@ -162,3 +175,45 @@ def test_waits_for_the_primary_host(broker, telemetry_factory, collector_factory
     col.wait_topic(NODE.format("NBIRTH"), 2)
     assert metric_map(births(col)[1])["bdSeq"].value == 1
     assert tel._thread.is_alive()
+
+
+def test_bd_seq_goes_up_once_per_session_not_per_connection_attempt(
+    tmp_path, telemetry_factory, collector_factory
+):
+    """Attempts that never get a session (broker down at start, then an outage) reuse the
+    bdSeq their Last Will carried: the sessions a host sees are numbered 0, 1, 2."""
+    broker = Broker(tmp_path / "late-broker")  # not listening yet
+    try:
+        with capture_logs() as logs:
+            tel = telemetry_factory(broker, sparkplug={"enabled": True})
+            time.sleep(1.5)  # back-off 0.1, 0.2, 0.4, 0.5 s: four or five attempts fail
+        assert failed_attempts(logs) >= 3
+        broker.start()
+        col = collector_factory(broker, ["spBv1.0/#"])
+        col.publish(NODE.format("NCMD"), rebirth_request())  # the NBIRTH may precede `col`
+        col.wait_topic(NODE.format("NBIRTH"))
+        assert {metric_map(b)["bdSeq"].value for b in births(col)} == {0}
+
+        # an outage while running: the session ends, the attempts while the broker is down fail
+        with capture_logs() as logs:
+            broker.stop()
+            time.sleep(1.5)
+            assert failed_attempts(logs) >= 3
+            broker.start()
+            spb_link = tel._links[1]
+            end = time.monotonic() + 15
+            while not (spb_link.born and col.client.is_connected()) and time.monotonic() < end:
+                time.sleep(0.05)
+        seen = len(births(col))
+        col.publish(NODE.format("NCMD"), rebirth_request())
+        col.wait_topic(NODE.format("NBIRTH"), seen + 1)
+        assert metric_map(births(col)[-1])["bdSeq"].value == 1
+
+        tel.stop()  # NDEATH with the session's bdSeq; the next process takes the next one
+        death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[-1].payload)
+        assert death.bd_seq_metric.value == 1
+        telemetry_factory(broker, sparkplug={"enabled": True})
+        col.wait_topic(NODE.format("NBIRTH"), len(births(col)) + 1)
+        assert metric_map(births(col)[-1])["bdSeq"].value == 2
+    finally:
+        broker.stop()

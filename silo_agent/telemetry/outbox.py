@@ -304,12 +304,20 @@ class Outbox:
         with self._tx():
             return Envelope.new(self._next_seq())
 
-    def next_bd_seq(self) -> int:
-        """Sparkplug bdSeq for the next MQTT session, 0..255, persisted before it is used."""
+    def bd_seq(self) -> int:
+        """Sparkplug bdSeq, 0..255, for the Last Will of the next CONNECT. It stays the same
+        until a session is accepted (`advance_bd_seq`), so attempts that never get one (broker
+        down, refused) do not skip numbers."""
+        with self._lock:
+            return self._counter("bd_seq") % 256
+
+    def advance_bd_seq(self) -> None:
+        """The broker accepted a session with the current bdSeq: the next CONNECT takes the
+        next one. Committed (and in the state file) before that session's NBIRTH, so no later
+        session, in this process or the next, births with the same bdSeq."""
         with self._tx():
             self._state["bd_seq"] = self._bump("bd_seq")
             self._write_state()
-            return (self._state["bd_seq"] - 1) % 256
 
     # ------------------------------------------------------------ queue
 

@@ -7,7 +7,9 @@ own in-flight copies after a reconnect, out of step with the outbox (which re-se
 unacknowledged row itself, oldest first, with its original msg_id, seq and ts).
 
 Sparkplug runs on a second MQTT connection because MQTT allows one Last Will per connection
-and both `P/status` = offline and the Sparkplug NDEATH must be wills.
+and both `P/status` = offline and the Sparkplug NDEATH must be wills. The NDEATH will of each
+attempt carries the outbox's current bdSeq; only a CONNACK accepting the session advances it,
+so failed attempts reuse it and the sessions a host sees are numbered one apart.
 """
 
 from __future__ import annotations
@@ -220,7 +222,7 @@ class Transport:
             will = self.session.status("offline", Envelope.new(link.will_seq))
             client.will_set(self.status_topic, will, qos=1, retain=True)
         else:
-            link.bd_seq = self.outbox.next_bd_seq()
+            link.bd_seq = self.outbox.bd_seq()
             will = sparkplug.SparkplugNode.death(link.bd_seq)
             client.will_set(self.spb_topics.node("NDEATH"), will, qos=1, retain=False)
 
@@ -287,6 +289,8 @@ class Transport:
                 )
             link.refused = refused
             return
+        if link.name == SPARKPLUG_LINK:  # this session has its bdSeq; the next takes bdSeq + 1
+            self.outbox.advance_bd_seq()
         link.connected = True
         link.connected_at = time.time()
         link.max_packet = getattr(properties, "MaximumPacketSize", None)
