@@ -217,3 +217,30 @@ def test_bd_seq_goes_up_once_per_session_not_per_connection_attempt(
         assert metric_map(births(col)[-1])["bdSeq"].value == 2
     finally:
         broker.stop()
+
+
+def test_replayed_data_carries_only_what_the_birth_declared(
+    broker, telemetry_factory, collector_factory
+):
+    """A camera taken out of the config between runs: its state, still queued from the last
+    run, is left out of the replayed NDATA (which a host would reject), and a queued NDATA with
+    nothing left is not sent at all, so the seq runs on without a gap."""
+    col = collector_factory(broker, ["spBv1.0/#"])
+    old = telemetry_factory(
+        broker, cameras=("cam-a", "cam-c"), sparkplug={"enabled": True}, start=False
+    )
+    old.set_status(cameras={"cam-a": ("ok", None), "cam-c": ("ok", None)})
+    old.set_status(cameras={"cam-c": ("failed", "timeout")})  # only the removed camera
+    old.publish_result(summary())
+    old.stop()  # never connected: the three NDATA stay in the outbox
+    telemetry_factory(broker, cameras=("cam-a", "cam-b"), sparkplug={"enabled": True})
+    col.wait_topic(NODE.format("NDATA"), 2)
+    time.sleep(0.3)  # a third NDATA would be the one holding only cam-c
+    (birth,) = births(col)
+    declared = set(metric_map(birth))
+    assert "Cameras/cam-c/State" not in declared
+    data = [ps.NData.decode(m.payload) for m in col.on(NODE.format("NDATA"))]
+    assert [d.seq for d in data] == [1, 2]
+    assert all(m.name in declared and m.is_historical for d in data for m in d.metrics)
+    assert {m.name: m.value for m in data[0].metrics} == {"Cameras/cam-a/State": "ok"}
+    assert metric_map(data[1])["Inventory/Volume m3"].value == 12.345

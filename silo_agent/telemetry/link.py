@@ -43,6 +43,7 @@ class Link:
     acked_rows: list[int] = field(default_factory=list)
     bd_seq: int = 0
     born: bool = False
+    declared: frozenset[str] = frozenset()  # the metrics of the session's last NBIRTH
     spb_seq: int = 0
 
     def reset_session(self) -> None:
@@ -54,6 +55,7 @@ class Link:
         self.direct.clear()
         self.acked.clear()
         self.born = False
+        self.declared = frozenset()
         self.spb_seq = 0
 
     def publish_direct(self, topic: str, payload: bytes, *, retain: bool, qos: int = 1) -> int:

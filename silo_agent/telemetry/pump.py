@@ -67,7 +67,12 @@ class Pump:
             return
         assert link.client is not None
         for row in self.outbox.pending(link.last_id, room, link.kinds):
-            topic, payload, props = self._prepare(link, row)
+            prepared = self._prepare(link, row)
+            if prepared is None:  # nothing in it this session declared: settled, not sent
+                link.last_id = row.id
+                link.acked_rows.append(row.id)
+                continue
+            topic, payload, props = prepared
             size = publish_packet_size(topic, payload, row.qos, props, self.cfg.protocol == "5")
             if link.max_packet is not None and size > link.max_packet:
                 self._dead_letter(
@@ -156,13 +161,27 @@ class Pump:
         )
         self.outbox_changed()
 
-    def _prepare(self, link: Link, row: Row) -> tuple[str, bytes, Properties | None]:
+    def _prepare(self, link: Link, row: Row) -> tuple[str, bytes, Properties | None] | None:
+        """Topic, payload and MQTT 5 properties of a row; None for a Sparkplug NDATA none of
+        whose metrics the session's NBIRTH declared."""
         payload = row.payload
         if row.kind == KIND_SPARKPLUG:
-            link.spb_seq = (link.spb_seq + 1) % 256
-            payload = sparkplug.finalize(
-                payload, link.spb_seq, historical=row.created < link.connected_at
+            finalized, left_out = sparkplug.finalize(
+                payload,
+                (link.spb_seq + 1) % 256,
+                historical=row.created < link.connected_at,
+                declared=link.declared,
             )
+            if left_out:
+                log.info(
+                    "Sparkplug metrics the NBIRTH did not declare left out of an NDATA",
+                    metrics=left_out,
+                    sent=finalized is not None,
+                )
+            if finalized is None:
+                return None
+            link.spb_seq = (link.spb_seq + 1) % 256
+            payload = finalized
         if self.cfg.protocol != "5" or row.kind == KIND_SPARKPLUG:
             return row.topic, payload, None
         props = Properties(PacketTypes.PUBLISH)

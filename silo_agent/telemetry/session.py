@@ -228,6 +228,7 @@ class Session:
     def _publish_birth(self, link: Link) -> None:
         with self.state.lock:
             payload = self.spb_node.birth(link.bd_seq)
+            link.declared = frozenset(self.spb_node.datatypes)
         link.publish_direct(self.me.spb_topics.node("NBIRTH"), payload, retain=False, qos=0)
         link.born = True
         link.spb_seq = 0

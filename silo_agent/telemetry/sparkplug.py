@@ -3,14 +3,15 @@
 Pure payload building; the MQTT session (will, bdSeq, seq, rebirth, STATE) lives in mqtt.py.
 The node keeps the current value of every metric so that any NBIRTH (first, after a
 reconnect, on a rebirth request) declares all of them with their datatypes and values.
-NDATA payloads are stored in the outbox without `seq`; `finalize` adds it when sent, and marks
-metrics `is_historical` when they are replayed after an outage.
+NDATA payloads are stored in the outbox without `seq`; `finalize` adds it when sent, leaves out
+the metrics the session's NBIRTH did not declare, and marks metrics `is_historical` when they
+are replayed after an outage.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -167,14 +168,25 @@ class SparkplugNode:
         return self._data({camera_metric(s): v for s, v in states.items()}, now_ms())
 
 
-def finalize(raw: bytes, seq: int, historical: bool) -> bytes:
-    """Give a stored NDATA its session seq; replayed data is flagged `is_historical`."""
+def finalize(
+    raw: bytes, seq: int, historical: bool, declared: Collection[str]
+) -> tuple[bytes | None, list[str]]:
+    """Give a stored NDATA its session seq, keeping only the metrics this session's NBIRTH
+    `declared` (a host rejects others; a replay can hold metrics of an earlier run's config);
+    replayed data is flagged `is_historical`. Returns the payload (None: no metric left) and
+    the names left out."""
     payload = pb.Payload.FromString(raw)
+    kept = [m for m in payload.metrics if m.name in declared]
+    left_out = [m.name for m in payload.metrics if m.name not in declared]
+    if not kept:
+        return None, left_out
+    del payload.metrics[:]
+    payload.metrics.extend(kept)
     payload.seq = seq
     if historical:
         for metric in payload.metrics:
             metric.is_historical = True
-    return payload.SerializeToString()
+    return payload.SerializeToString(), left_out
 
 
 def is_rebirth_request(raw: bytes | bytearray) -> bool:
