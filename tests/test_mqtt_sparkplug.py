@@ -244,3 +244,41 @@ def test_replayed_data_carries_only_what_the_birth_declared(
     assert all(m.name in declared and m.is_historical for d in data for m in d.metrics)
     assert {m.name: m.value for m in data[0].metrics} == {"Cameras/cam-a/State": "ok"}
     assert metric_map(data[1])["Inventory/Volume m3"].value == 12.345
+
+
+def test_birth_stamps_each_metric_with_when_its_value_was_measured(
+    broker, telemetry_factory, collector_factory
+):
+    """A historian records each value once: a rebirth gives the scan's metrics the capture
+    time and an alarm or camera the time of its NDATA, as the NDATA did; the birth time only
+    goes to bdSeq, the rebirth control and values never set."""
+    col = collector_factory(broker, ["spBv1.0/#"])
+    tel = telemetry_factory(broker, sparkplug={"enabled": True})
+    col.wait_topic(NODE.format("NBIRTH"))
+    tel.publish_result(summary())
+    tel.publish_alarm(
+        {"type": "level_high", "state": "raised", "severity": "warning", "scan_id": "s"}
+    )
+    tel.set_status(cameras={"cam-a": ("ok", None)})
+    col.wait_topic(NODE.format("NDATA"), 3)
+    sent = {
+        m.name: m.timestamp
+        for raw in col.on(NODE.format("NDATA"))
+        for m in ps.NData.decode(raw.payload).metrics
+    }
+    time.sleep(0.01)  # the rebirth's own time differs from every NDATA's
+    col.publish(NODE.format("NCMD"), rebirth_request())
+    col.wait_topic(NODE.format("NBIRTH"), 2)
+    rebirth = births(col)[1]
+    stamps = {m.name: m.timestamp for m in rebirth.metrics}
+    assert {name: stamps[name] for name in sent} == sent
+    assert stamps["Inventory/Volume m3"] == stamps["Scan/Time"] == 1795312800000
+    never_set = {
+        "bdSeq",
+        "Node Control/Rebirth",
+        "Node Info/Software Version",
+        "Alarms/collapse",
+        "Cameras/cam-b/State",
+    }
+    assert {stamps[name] for name in never_set} == {rebirth.timestamp}
+    assert rebirth.timestamp > max(sent.values())

@@ -93,11 +93,13 @@ def _set_value(metric: Any, datatype: int, value: Any) -> None:
 
 
 class SparkplugNode:
-    """Metric definitions and current values of this edge node."""
+    """Metric definitions, current values and their timestamps (ms) of this edge node."""
 
     def __init__(self, version: str, camera_serials: Iterable[str]) -> None:
         self.datatypes: dict[str, int] = {"Node Info/Software Version": pb.String}
         self.values: dict[str, Any] = {"Node Info/Software Version": version}
+        # when each value was measured (a scan's capture, an event); absent: never set
+        self.stamps: dict[str, int] = {}
         self.datatypes.update(RESULT_METRICS)
         for alarm_type in ALARM_TYPES:
             self.datatypes[alarm_metric(alarm_type)] = pb.Boolean
@@ -110,18 +112,23 @@ class SparkplugNode:
         """Take the alarm states persisted by the last run, so that the first NBIRTH after a
         restart says raised where the JSON topics, HA and the metrics do."""
         raised = set(active)
+        restored = now_ms()  # the persisted state carries no time: that of learning it
         for alarm_type in raised | set(ALARM_TYPES):
             self.datatypes[alarm_metric(alarm_type)] = pb.Boolean
             self.values[alarm_metric(alarm_type)] = alarm_type in raised
+            if alarm_type in raised:
+                self.stamps[alarm_metric(alarm_type)] = restored
 
     def birth(self, bd_seq: int) -> bytes:
-        """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric."""
+        """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric, each
+        stamped with when its value was measured (as its NDATA was, so a historian records it
+        once); the birth time goes to the session metrics and to values never set."""
         payload = pb.Payload(timestamp=now_ms(), seq=0)
         ts = payload.timestamp
         _set_value(payload.metrics.add(name=BD_SEQ, timestamp=ts), pb.UInt64, bd_seq)
         _set_value(payload.metrics.add(name=REBIRTH, timestamp=ts), pb.Boolean, False)
         for name, datatype in self.datatypes.items():
-            metric = payload.metrics.add(name=name, timestamp=ts)
+            metric = payload.metrics.add(name=name, timestamp=self.stamps.get(name, ts))
             _set_value(metric, datatype, self.values.get(name))
         return payload.SerializeToString()
 
@@ -141,6 +148,7 @@ class SparkplugNode:
                 self.datatypes[name] = pb.Boolean if name.startswith("Alarms/") else pb.String
                 new_metric = True
             self.values[name] = value
+            self.stamps[name] = ts
             _set_value(payload.metrics.add(name=name, timestamp=ts), self.datatypes[name], value)
         return payload.SerializeToString(), new_metric
 
