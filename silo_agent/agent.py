@@ -77,6 +77,8 @@ class Agent:
         self.cache = AuditCache(config.audit, config.silo.id)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
         self.telemetry.restore_alarms(self.pipeline.state.active)
+        if config.mqtt.sparkplug.enabled:
+            self._restore_result()
         self.metrics.set_alarms(self.pipeline.state.active)
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -88,6 +90,19 @@ class Agent:
         self._last: Outcome | None = None
         self._scheduler = None
         self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
+
+    def _restore_result(self) -> None:
+        """The last published result into the Sparkplug node. A host applies the NDATA the
+        outbox replays after a restart as history, not as the current value: without this
+        it would show nulls from the first NBIRTH until the next scan."""
+        try:
+            self.telemetry.restore_result(self.cache.latest_result())
+        except ValueError as exc:
+            log.warning(
+                "no scan result restored: the Sparkplug birth starts with nulls",
+                reason=str(exc),
+                cache=str(self.cache.directory),
+            )
 
     @property
     def last_outcome(self) -> Outcome | None:

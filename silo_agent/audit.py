@@ -163,6 +163,22 @@ class AuditCache:
             out.append(Entry(path.name, path, when, _tree_bytes(path)))
         return sorted(out, key=lambda e: (e.captured_at, e.scan_id))
 
+    def latest_result(self) -> dict[str, Any]:
+        """The published result (`result.json`) of the newest cached scan that has one;
+        ValueError saying why when there is none or it cannot be read."""
+        for entry in reversed(self.entries()):
+            path = entry.path / RESULT
+            try:
+                summary = json.loads(path.read_text(encoding="utf-8"))
+            except FileNotFoundError:
+                continue  # a scan that failed before a result: an older one may have one
+            except (OSError, ValueError, RecursionError) as exc:
+                raise ValueError(f"{path}: {exc}") from None
+            if not isinstance(summary, dict):
+                raise ValueError(f"{path}: not a JSON object")
+            return summary
+        raise ValueError(f"no scan in {self.directory} has a {RESULT}")
+
     def names(self) -> set[str]:
         """Names taken in the cache directory (cheap: no manifest read, no sizes)."""
         if not self.directory.is_dir():

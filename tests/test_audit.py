@@ -117,6 +117,18 @@ def test_export_and_lookup(tmp_path: Path):
             cache.find(bad)
 
 
+def test_latest_result_is_the_newest_scan_that_has_one(tmp_path: Path):
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"), "silo-t")
+    with pytest.raises(ValueError, match="no scan"):
+        cache.latest_result()
+    old, new = (cache.write_scan(make_scan(k, points=10), {}) for k in (1, 2))
+    (old / "result.json").write_text(json.dumps({"scan_id": old.name}))
+    assert cache.latest_result() == {"scan_id": old.name}  # the newest failed: no result
+    (new / "result.json").write_text('{"scan_id": ')
+    with pytest.raises(ValueError, match=str(new / "result.json")):
+        cache.latest_result()
+
+
 def test_differences_are_bit_exact_and_ignore_timings():
     a = {"volume_m3": 1.2345678901234567, "surface": {"max_z": 0.7}, "timings": {"x": 1.0}}
     b = {"volume_m3": 1.2345678901234567, "surface": {"max_z": 0.7}, "timings": {"x": 2.0}}

@@ -208,6 +208,16 @@ class Telemetry:
             self.state.alarms_dirty = True
             self.state.rebirth = True
 
+    def restore_result(self, summary: dict) -> None:
+        """The last published result (from the audit cache): every birth from now on carries
+        it, as the retained `P/volume` does, not nulls until the next scan. Only what
+        `P/volume` says is taken, validated as for publishing; ValueError if it cannot be."""
+        check_summary(summary)
+        volume = volume_payload(Envelope.new(1), summary).model_dump(mode="json")
+        with self.state.lock:
+            self.spb_node.restore_result(volume)
+            self.state.rebirth = True
+
     def _record_alarm(self, alarm_type: str, event: Mapping) -> None:
         """The state of `alarm_type` is now `event`; a new type is announced to HA (with the
         state lock held)."""

@@ -292,6 +292,8 @@ def check_summary(summary: dict) -> None:
         raise ValueError(f"result summary lacks {exc.args[0]!r}") from None
     except ValidationError as exc:
         raise ValueError(f"result summary: {describe_errors(exc)}") from None
+    except (TypeError, AttributeError) as exc:  # a part that is not an object, e.g. `level`
+        raise ValueError(f"result summary: {exc}") from None
 
 
 def describe_errors(exc: ValidationError) -> str:

@@ -119,6 +119,12 @@ class SparkplugNode:
             if alarm_type in raised:
                 self.stamps[alarm_metric(alarm_type)] = restored
 
+    def restore_result(self, summary: dict) -> None:
+        """Take the last result published before this start, so that the first NBIRTH after
+        a restart carries it (with its capture time) instead of nulls; the run that published
+        it sent its NDATA, or left it in the outbox."""
+        self.data_from_result(summary)
+
     def birth(self, bd_seq: int) -> bytes:
         """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric, each
         stamped with when its value was measured (as its NDATA was, so a historian records it
