@@ -1,6 +1,7 @@
 """Sparkplug B 3.0 edge node: the metrics, and the NBIRTH / NDATA / NDEATH payloads.
 
-Pure payload building; the MQTT session (will, bdSeq, seq, rebirth, STATE) lives in mqtt.py.
+Pure payload building; the MQTT session (will, bdSeq, seq, rebirth, STATE) lives in
+transport.py, session.py and pump.py.
 The node keeps the current value of every metric so that any NBIRTH (first, after a
 reconnect, on a rebirth request) declares all of them with their datatypes and values.
 NDATA payloads are stored in the outbox without `seq`; `finalize` adds it when sent, leaves out
