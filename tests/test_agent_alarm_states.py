@@ -18,6 +18,7 @@ from silo_agent.telemetry.payloads import ALARM_TYPES
 from tests.support.agent import BASE, SILO, Daemon, write_config
 from tests.support.mqtt import validate_json
 from tests.support.mqtt_broker import free_port
+from tests.support.sparkplug import rebirth_request
 
 NODE = f"spBv1.0/silos/{{}}/{SILO}"
 LOW = 100.0  # m³: the simulated flat bay holds ~43 m³, so level_low is raised at once
@@ -129,18 +130,7 @@ def test_alarm_state_survives_sigkill_in_births_retained_states_and_metrics_and_
         assert {t for t, s in after.items() if s["state"] == "raised"} == {"level_low"}
         assert after["level_low"]["scan_id"] == finished["scan_id"]
 
-        ncmd = ps.NCmd(
-            timestamp=int(time.time() * 1000),
-            metrics=(
-                ps.Metric(
-                    timestamp=None,
-                    name="Node Control/Rebirth",
-                    datatype=ps.DataType.BOOLEAN,
-                    value=True,
-                ),
-            ),
-        )
-        spb.publish(NODE.format("NCMD"), ncmd.encode(include_dtypes=True))
+        spb.publish(NODE.format("NCMD"), rebirth_request())
         births = spb.wait_topic(NODE.format("NBIRTH"), births_before + 2)
         assert alarm_metrics(births, births_before + 1)["Alarms/level_low"] is True
 

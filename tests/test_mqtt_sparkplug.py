@@ -11,6 +11,7 @@ from structlog.testing import capture_logs
 
 from tests.support.mqtt import SILO, summary
 from tests.support.mqtt_broker import Broker
+from tests.support.sparkplug import rebirth_request
 
 NODE = f"spBv1.0/silos/{{}}/{SILO}"
 
@@ -21,22 +22,6 @@ def births(col) -> list[ps.NBirth]:
 
 def metric_map(payload) -> dict[str, ps.Metric]:
     return {m.name: m for m in payload.metrics}
-
-
-def rebirth_request() -> bytes:
-    """NCMD `Node Control/Rebirth` = true, as a host sends it (pysparkplug's encoder)."""
-    ncmd = ps.NCmd(
-        timestamp=int(time.time() * 1000),
-        metrics=(
-            ps.Metric(
-                timestamp=None,
-                name="Node Control/Rebirth",
-                datatype=ps.DataType.BOOLEAN,
-                value=True,
-            ),
-        ),
-    )
-    return ncmd.encode(include_dtypes=True)
 
 
 def failed_attempts(logs: list[dict]) -> int:
