@@ -1,5 +1,5 @@
-"""The few grid filters the engine runs on every scan, in numpy: box sums, square minimum and
-maximum, and dilation by the 4-neighbour cross. Grids are 2-D.
+"""The few grid filters the engine runs on every scan, in numpy: box means, square minimum and
+maximum, and dilation by the 4-neighbour cross. Grids are 2-D (box means also take a stack).
 
 scipy.ndimage has all of them, but a one-off `silo-agent process` would pay about 0.25 s to
 import it (its array-API layer copies numpy's namespace and so loads numpy.f2py, numpy.testing
@@ -83,7 +83,8 @@ def _extreme_down(values: np.ndarray, size: int, pick: np.ufunc) -> np.ndarray:
     identity = np.inf if pick is np.minimum else -np.inf
     padded = np.full((blocks * size, *values.shape[1:]), identity)
     padded[before : before + rows] = values
-    # mode 'reflect' (d c b a | a b c d | d c b a); windows never reach past one grid length
+    # mode 'reflect' (d c b a | a b c d | d c b a): one reflected copy each side is enough,
+    # since a window reaching past it holds the whole grid already
     lead = min(before, rows)
     padded[before - lead : before] = values[:lead][::-1]
     tail = min(after, rows)
