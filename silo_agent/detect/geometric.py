@@ -127,6 +127,15 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
     return {(int(k // n), int(k % n)): float(v) for k, v in zip(unique, best, strict=True)}
 
 
+def _highest(values: np.ndarray, labels: np.ndarray, count: int) -> np.ndarray:
+    """Each label's (0..count) highest value, -inf for label 0 and for labels with no cell:
+    a scatter-maximum over the labelled cells (`values` finite there)."""
+    labelled = np.flatnonzero(labels)
+    highest = np.full(count + 1, -np.inf)
+    np.maximum.at(highest, labels.ravel()[labelled], values.ravel()[labelled])
+    return highest
+
+
 def _basin_peaks(
     values: np.ndarray, labels: np.ndarray, count: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -136,12 +145,10 @@ def _basin_peaks(
     A scatter-maximum over the cells and one comparison, where a sort of all the values
     (what `ndimage.maximum_position` does) would be most of detection's cost.
     """
+    peaks = _highest(values, labels, count)
     flat_labels = labels.ravel()
-    flat_values = values.ravel()
     labelled = np.flatnonzero(flat_labels)
-    peaks = np.full(count + 1, -np.inf)
-    np.maximum.at(peaks, flat_labels[labelled], flat_values[labelled])
-    highest = labelled[flat_values[labelled] == peaks[flat_labels[labelled]]]
+    highest = labelled[values.ravel()[labelled] == peaks[flat_labels[labelled]]]
     cell = np.zeros(count + 1, dtype=np.int64)
     cell[flat_labels[highest[::-1]]] = highest[::-1]  # the last assignment wins: the first cell
     return peaks[1:], np.column_stack(np.unravel_index(cell[1:], values.shape))
@@ -260,10 +267,7 @@ def detect_piles(surface: Surface, settings: DetectionConfig) -> list[Pile]:
         settings.min_prominence_m,
         settings.min_separation_m / surface.heightmap.step,
     )
-    flat = labels.ravel()
-    labelled = np.flatnonzero(flat)
-    tallest = np.full(int(labels.max()) + 1, -np.inf)
-    np.maximum.at(tallest, flat[labelled], coarse.ravel()[labelled])
+    tallest = _highest(coarse, labels, int(labels.max()))
     piles = []
     for k in np.flatnonzero(tallest >= settings.min_height_m):  # basins high enough to be piles
         pile = surface.pile(labels == k, "geometric")

@@ -150,6 +150,18 @@ def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSightin
     return out
 
 
+def _rays_key(frame: DepthFrame) -> tuple[object, ...]:
+    """What a camera's rays depend on: a frame with another key needs them made again."""
+    return (
+        frame.depth.shape,
+        frame.fx,
+        frame.fy,
+        frame.ppx,
+        frame.ppy,
+        np.asarray(frame.extrinsic).tobytes(),
+    )
+
+
 class _Rays:
     """Silo-frame ray of every (decimated) pixel of one camera, scaled to unit depth."""
 
@@ -165,14 +177,7 @@ class _Rays:
             np.ascontiguousarray(silo[:, k], dtype=np.float32) for k in range(3)
         )
         self.origin = np.asarray(frame.extrinsic, dtype=np.float32)[:3, 3]
-        self.key = (
-            frame.depth.shape,
-            frame.fx,
-            frame.fy,
-            frame.ppx,
-            frame.ppy,
-            np.asarray(frame.extrinsic).tobytes(),
-        )
+        self.key = _rays_key(frame)
 
 
 class LiveMap:
@@ -218,15 +223,7 @@ class LiveMap:
 
     def _rays_of(self, frame: DepthFrame) -> _Rays:
         rays = self._rays.get(frame.serial)
-        key = (
-            frame.depth.shape,
-            frame.fx,
-            frame.fy,
-            frame.ppx,
-            frame.ppy,
-            np.asarray(frame.extrinsic).tobytes(),
-        )
-        if rays is None or rays.key != key:
+        if rays is None or rays.key != _rays_key(frame):
             rays = self._rays[frame.serial] = _Rays(frame, self.settings.decimation)
         return rays
 

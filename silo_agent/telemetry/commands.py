@@ -151,26 +151,11 @@ class Commands:
     def finish_scan_request(
         self, command: ScanCommand, scan_id: str | None = None, error: str | None = None
     ) -> None:
-        self._reply(
-            command.reply_topic,
-            command.correlation,
-            command.request_id,
-            status="error" if error else "done",
-            accepted=True,
-            error=error,
-            scan_id=scan_id,
-        )
+        self._finished(command.reply_topic, command.correlation, command.request_id, scan_id, error)
 
     def finish_live(self, command: LiveCommand, session_id: str, error: str | None) -> None:
-        self._reply(
-            command.reply_topic,
-            command.correlation,
-            command.request.request_id,
-            status="error" if error else "done",
-            accepted=True,
-            error=error,
-            scan_id=session_id,
-        )
+        request_id = command.request.request_id
+        self._finished(command.reply_topic, command.correlation, request_id, session_id, error)
 
     def dispatch(self, link: Link, msg: mqtt.MQTTMessage) -> None:
         """One incoming message, to the handler of its topic."""
@@ -246,18 +231,9 @@ class Commands:
                     about = exc.scan_id
         if error is not None:
             log.warning("scan request refused", request_id=request_id, error=error)
-            self._reply(
-                reply_topic,
-                correlation,
-                request_id,
-                status="error",
-                accepted=False,
-                error=error,
-                scan_id=about,
-            )
         else:
             log.info("scan request accepted", request_id=request_id)
-            self._reply(reply_topic, correlation, request_id, status="accepted", accepted=True)
+        self._answered(reply_topic, correlation, request_id, error, scan_id=about)
 
     def _live_command(self, msg: mqtt.MQTTMessage) -> None:
         reply_topic, correlation, topic_error = self._reply_route(msg, "live")
@@ -272,23 +248,49 @@ class Commands:
             session_id = self._live_callback(LiveCommand(request, reply_topic, correlation))
         except (ValueError, CommandRejected) as exc:
             log.warning("live request refused", request_id=request_id, error=str(exc))
-            self._reply(
-                reply_topic,
-                correlation,
-                request_id,
-                status="error",
-                accepted=False,
-                error=str(exc) or "rejected",
-            )
+            self._answered(reply_topic, correlation, request_id, str(exc) or "rejected")
             return
         log.info("live request accepted", request_id=request_id, session=session_id)
+        self._answered(reply_topic, correlation, request_id, None, scan_id=session_id)
+
+    def _answered(
+        self,
+        topic: str,
+        correlation: bytes | None,
+        request_id: str | None,
+        error: str | None,
+        scan_id: str | None = None,
+    ) -> None:
+        """A command's first reply: accepted, or refused with why (`error`)."""
+        status: ReplyStatus = "accepted" if error is None else "error"
         self._reply(
-            reply_topic,
+            topic,
             correlation,
             request_id,
-            status="accepted",
+            status=status,
+            accepted=error is None,
+            error=error,
+            scan_id=scan_id,
+        )
+
+    def _finished(
+        self,
+        topic: str,
+        correlation: bytes | None,
+        request_id: str | None,
+        scan_id: str | None,
+        error: str | None,
+    ) -> None:
+        """An accepted command's last reply: done, or the error that ended it."""
+        status: ReplyStatus = "error" if error else "done"
+        self._reply(
+            topic,
+            correlation,
+            request_id,
+            status=status,
             accepted=True,
-            scan_id=session_id,
+            error=error,
+            scan_id=scan_id,
         )
 
     def _reply(

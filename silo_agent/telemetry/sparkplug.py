@@ -124,7 +124,7 @@ class SparkplugNode:
         """Take the last result published before this start, so that the first NBIRTH after
         a restart carries it (with its capture time) instead of nulls; the run that published
         it sent its NDATA, or left it in the outbox."""
-        self.data_from_result(summary)
+        self._remember(*_result_values(summary))
 
     def birth(self, bd_seq: int) -> bytes:
         """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric, each
@@ -146,9 +146,9 @@ class SparkplugNode:
         _set_value(payload.metrics.add(name=BD_SEQ), pb.UInt64, bd_seq)
         return payload.SerializeToString()
 
-    def _data(self, values: dict[str, Any], ts: int) -> tuple[bytes, bool]:
-        """NDATA without seq; also returns whether a new metric needs a rebirth first."""
-        payload = pb.Payload(timestamp=now_ms())
+    def _remember(self, values: dict[str, Any], ts: int) -> bool:
+        """Take `values`, measured at `ts`, as the current ones; True if a metric is new (it
+        needs a rebirth to be declared)."""
         new_metric = False
         for name, value in values.items():
             if name not in self.datatypes:
@@ -156,31 +156,43 @@ class SparkplugNode:
                 new_metric = True
             self.values[name] = value
             self.stamps[name] = ts
+        return new_metric
+
+    def _data(self, values: dict[str, Any], ts: int) -> tuple[bytes, bool]:
+        """NDATA without seq; also returns whether a new metric needs a rebirth first."""
+        new_metric = self._remember(values, ts)
+        payload = pb.Payload(timestamp=now_ms())
+        for name, value in values.items():
             _set_value(payload.metrics.add(name=name, timestamp=ts), self.datatypes[name], value)
         return payload.SerializeToString(), new_metric
 
     def data_from_result(self, summary: dict) -> tuple[bytes, bool]:
-        level = summary.get("level") or {}
-        captured = iso_to_ms(summary["captured_at"])
-        values = {
-            "Inventory/Volume m3": summary.get("volume_m3"),
-            "Inventory/Mass t": summary.get("mass_t"),
-            "Inventory/Level Min m": level.get("min"),
-            "Inventory/Level Mean m": level.get("mean"),
-            "Inventory/Level Max m": level.get("max"),
-            "Inventory/Coverage": summary.get("coverage"),
-            "Inventory/Valid": summary.get("valid"),
-            "Inventory/Degraded": summary.get("degraded", False),
-            "Scan/Last Id": summary["scan_id"],
-            "Scan/Time": captured,
-        }
-        return self._data(values, captured)
+        return self._data(*_result_values(summary))
 
     def data_from_alarm(self, event: dict) -> tuple[bytes, bool]:
         return self._data({alarm_metric(event["type"]): event["state"] == "raised"}, now_ms())
 
     def data_from_cameras(self, states: dict[str, str]) -> tuple[bytes, bool]:
         return self._data({camera_metric(s): v for s, v in states.items()}, now_ms())
+
+
+def _result_values(summary: dict) -> tuple[dict[str, Any], int]:
+    """The metrics of a scan result (the shape of `P/volume`) and its capture time, ms."""
+    level = summary.get("level") or {}
+    captured = iso_to_ms(summary["captured_at"])
+    values = {
+        "Inventory/Volume m3": summary.get("volume_m3"),
+        "Inventory/Mass t": summary.get("mass_t"),
+        "Inventory/Level Min m": level.get("min"),
+        "Inventory/Level Mean m": level.get("mean"),
+        "Inventory/Level Max m": level.get("max"),
+        "Inventory/Coverage": summary.get("coverage"),
+        "Inventory/Valid": summary.get("valid"),
+        "Inventory/Degraded": summary.get("degraded", False),
+        "Scan/Last Id": summary["scan_id"],
+        "Scan/Time": captured,
+    }
+    return values, captured
 
 
 def finalize(
