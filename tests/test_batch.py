@@ -168,3 +168,44 @@ def test_process_help_imports_no_numeric_library() -> None:
     )
     heavy = {"numpy", "pydantic", "importlib.metadata", *HEAVY}
     assert loaded.isdisjoint(heavy), sorted(loaded & heavy)
+
+
+def test_process_builds_only_the_settings_models_it_validates(scan_dir: Path) -> None:
+    """pydantic builds a model's validator when first used (defer_build): `process` validates
+    the scan's reconstruction, detection and calibration settings, never the daemon's config."""
+    code = (
+        "import contextlib, io\n"
+        "from silo_agent.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        f"    assert main(['process', {str(scan_dir)!r}, '--json']) == 0\n"
+        "import silo_agent.config as c\n"
+        "names = ['Config', 'MqttConfig', 'LiveConfig', 'ReconstructionConfig',"
+        " 'DetectionConfig', 'CalibrationConfig']\n"
+        "print(*(getattr(c, n).__pydantic_complete__ for n in names))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False", "False", "False", "True", "True", "True"]
+
+
+@pytest.mark.parametrize(("preset", "expected"), [(None, "__all__"), ("", ""), ("1", "1")])
+def test_pydantic_plugins_are_off_unless_the_environment_says(
+    scan_dir: Path, preset: str | None, expected: str
+) -> None:
+    """Scanning every installed package for pydantic plugins costs each `process` ~0.02 s;
+    the agent turns it off, and an explicit setting (even empty: plugins on) wins."""
+    code = (
+        "import contextlib, io, os\n"
+        "from silo_agent.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        f"    assert main(['process', {str(scan_dir)!r}, '--json']) == 0\n"
+        "print(repr(os.environ.get('PYDANTIC_DISABLE_PLUGINS')))"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYDANTIC_DISABLE_PLUGINS"}
+    if preset is not None:
+        env["PYDANTIC_DISABLE_PLUGINS"] = preset
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == repr(expected)
