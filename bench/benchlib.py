@@ -22,8 +22,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from silo_agent.config import ReconstructionConfig
+from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import reconstruct
-from silo_agent.reconstruct.grid import Grid, fuse_and_crop
+from silo_agent.reconstruct.fuse import fuse_and_crop
 from silo_agent.scan import Scan, write_ply
 
 REPO = Path(__file__).resolve().parent.parent

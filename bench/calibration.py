@@ -37,6 +37,7 @@ import numpy as np
 from benchlib import header, volume_m3
 from scipy.spatial.transform import Rotation
 
+from silo_agent.analysis.drift import DriftMonitor
 from silo_agent.calibrate import (
     calibrate,
     fit_plane,
@@ -45,7 +46,6 @@ from silo_agent.calibrate import (
     with_extrinsics,
 )
 from silo_agent.config import CalibrationConfig, ReconstructionConfig, SpacingConfig
-from silo_agent.drift import DriftMonitor
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan
 from silo_agent.sim.layouts import axis_angle, view_pose

@@ -36,8 +36,8 @@ from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import fused_points, onnx_piles
 from silo_agent.detect.geometric import Surface, detect_piles, grid_of
 from silo_agent.detect.onnx_yolo import YoloModel, locate
+from silo_agent.grid.volume import base_surface
 from silo_agent.reconstruct import reconstruct
-from silo_agent.reconstruct.volume import base_surface
 from silo_agent.sim import make_scene, simulate
 
 REPO = Path(__file__).resolve().parents[1]

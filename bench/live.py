@@ -23,8 +23,8 @@ import numpy as np
 from benchlib import header
 
 from silo_agent.config import LiveConfig
+from silo_agent.grid.grid import Grid
 from silo_agent.live.map import DepthFrame, LiveMap
-from silo_agent.reconstruct.grid import Grid
 from silo_agent.sim.robot import RobotRig
 from silo_agent.telemetry.heightmap_codec import encode_live_heightmap
 

@@ -30,9 +30,9 @@ import paho.mqtt.client as mqtt  # noqa: E402
 from mosquitto import Broker  # noqa: E402
 from paho.mqtt.enums import CallbackAPIVersion  # noqa: E402
 
+from silo_agent.base.log import configure_logging  # noqa: E402
 from silo_agent.config import MqttConfig  # noqa: E402
-from silo_agent.log import configure_logging  # noqa: E402
-from silo_agent.telemetry.mqtt import Telemetry  # noqa: E402
+from silo_agent.telemetry.client import Telemetry  # noqa: E402
 from silo_agent.telemetry.payloads import Envelope  # noqa: E402
 
 SILO = "bench"

@@ -10,7 +10,7 @@
 `--whole` runs (c) alone (bench/results/speed-process.md).
 By default the process is pinned to CPU 0 (children inherit it), so every figure is one core.
 The in-process figures run with freed memory kept in the heap, as the agent runs
-(silo_agent/heap.py); (a) also gives the time without.
+(silo_agent/base/heap.py); (a) also gives the time without.
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 from benchlib import REPO, cloudcompare_volume, fmt, fused_cloud, header
 
+from silo_agent.base.heap import keep_freed_memory
 from silo_agent.config import ReconstructionConfig
-from silo_agent.heap import keep_freed_memory
-from silo_agent.reconstruct import Result, reconstruct
-from silo_agent.reconstruct.grid import Grid
+from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct import Reconstruction, reconstruct
 from silo_agent.scan import Scan, write_ply, write_scan
 from silo_agent.sim.simulate import simulate
 
@@ -66,10 +66,10 @@ def median_time(fn: Callable[[], object], runs: int) -> tuple[float, list[float]
     return statistics.median(times), times
 
 
-def timed_reconstruct(scan: Scan, step: float, runs: int) -> tuple[float, Result]:
+def timed_reconstruct(scan: Scan, step: float, runs: int) -> tuple[float, Reconstruction]:
     """Median total time and the last result (its per-stage timings)."""
     settings = ReconstructionConfig(grid_step_m=step)
-    results: list[Result] = []
+    results: list[Reconstruction] = []
     median, _ = median_time(lambda: results.append(reconstruct(scan, settings)), runs)
     return median, results[-1]
 
@@ -276,26 +276,26 @@ from silo_agent.cli import build_parser
 args = build_parser().parse_args(["process", *sys.argv[1:]])
 t.append(time.perf_counter())
 os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")  # as the command line does
-from silo_agent.heap import keep_freed_memory
+from silo_agent.base.heap import keep_freed_memory
 keep_freed_memory()
 import numpy, pydantic
 t.append(time.perf_counter())
-import silo_agent.config, silo_agent.scan, silo_agent.scan_service as service
+import silo_agent.config, silo_agent.scan, silo_agent.service.scan_path as service
 t.append(time.perf_counter())
 import silo_agent.reconstruct
 t.append(time.perf_counter())
-import silo_agent.detect, silo_agent.batch
+import silo_agent.detect, silo_agent.service.batch
 t.append(time.perf_counter())
 scan = silo_agent.scan.read_scan(args.scan_dirs[0])
 t.append(time.perf_counter())
-analysis = service.overridden(service.analysis_of(scan), None, args.grid_step, args.method)
-result = service.analyse_scan(scan, analysis, [])
+analysis = service.overridden(service.settings_of(scan), None, args.grid_step, args.method)
+result = service.analyse_with(scan, analysis, [])
 t.append(time.perf_counter())
 print(json.dumps(service.summarise(result, scan, {}), allow_nan=False))
 t.append(time.perf_counter())
 fresh = result.reconstruction.timings_s
 again = time.perf_counter()
-warm = service.analyse_scan(scan, analysis, []).reconstruction.timings_s
+warm = service.analyse_with(scan, analysis, []).reconstruction.timings_s
 again = time.perf_counter() - again
 report = {"steps": [b - a for a, b in zip(t, t[1:])], "fresh": fresh, "warm": warm, "again": again}
 print(json.dumps(report), file=sys.stderr)

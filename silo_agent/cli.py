@@ -1,7 +1,7 @@
 """`silo-agent` command line. Each subcommand lives in a small function; heavy imports stay inside
 them so that `process` pays only for what it uses.
 
-Exit status (silo_agent/exits.py): 0 success, 1 a failed operation, 2 usage, 65 bad input
+Exit status (silo_agent/base/exits.py): 0 success, 1 a failed operation, 2 usage, 65 bad input
 data (EX_DATAERR), 78 bad configuration (EX_CONFIG); a bad file never ends in a traceback.
 """
 
@@ -16,7 +16,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from silo_agent.choices import (
+from silo_agent.base.choices import (
     DEFAULT_GRAIN,
     DEFAULT_GRID_STEP_M,
     DEFAULT_METHOD,
@@ -24,9 +24,9 @@ from silo_agent.choices import (
     LAYOUTS,
     METHODS,
 )
-from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
-from silo_agent.exits import DATA_ERROR as EX_DATAERR
-from silo_agent.exits import FAILURE, INTERRUPTED, OK, USAGE
+from silo_agent.base.exits import CONFIG_ERROR as EX_CONFIG
+from silo_agent.base.exits import DATA_ERROR as EX_DATAERR
+from silo_agent.base.exits import FAILURE, INTERRUPTED, OK, USAGE
 
 if TYPE_CHECKING:
     from silo_agent.capture import CameraFailure
@@ -51,7 +51,7 @@ def load_config(path: Path, service: bool = False) -> Config:
 
 def _configure_logging(args: argparse.Namespace) -> None:
     """structlog set up for the command's --log-level (structlog loads here, not at start)."""
-    from silo_agent.log import configure_logging
+    from silo_agent.base.log import configure_logging
 
     configure_logging(args.log_level)
 
@@ -86,7 +86,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_process(args: argparse.Namespace) -> int:
-    from silo_agent import batch
+    from silo_agent.service import batch
 
     config = load_config(args.config) if args.config else None
     if config is not None and config.detection.onnx is not None:
@@ -123,7 +123,7 @@ def _new_scan(
     config: Config, clouds: list[CameraCloud], failures: list[CameraFailure], started: datetime
 ) -> Scan:
     """A silo-scan/1 `Scan` of one capture; the scan id is the silo and the capture's UTC time."""
-    from silo_agent.scan_service import new_scan, new_scan_id
+    from silo_agent.service.scan_path import new_scan, new_scan_id
 
     return new_scan(config, new_scan_id(config, started, set()), started, clouds, failures)
 
@@ -133,20 +133,20 @@ def cmd_scan(args: argparse.Namespace) -> int:
     the cache, then processed, summarised and kept exactly as the daemon does."""
     import time
 
-    from silo_agent.audit import AuditCache
     from silo_agent.capture import capture_all
     from silo_agent.detect import ModelError
     from silo_agent.scan import ScanError
-    from silo_agent.scan_service import (
+    from silo_agent.service.scan_path import (
         CONFIG_KEY,
-        analyse_scan,
-        analysis_of,
+        analyse_with,
         keep_result,
         new_scan,
         new_scan_id,
         previous_piles,
+        settings_of,
         summarise,
     )
+    from silo_agent.storage.audit import AuditCache
 
     config = load_config(args.config)
     audit = config.audit.model_copy(update={"directory": args.out}) if args.out else config.audit
@@ -173,7 +173,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     previous = previous_piles(cache, scan.scan_id)
     clock = time.perf_counter()
     try:
-        result = analyse_scan(scan, analysis_of(scan), previous)
+        result = analyse_with(scan, settings_of(scan), previous)
     except ModelError as exc:
         return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
     timings["reconstruct_s"] = time.perf_counter() - clock
@@ -393,7 +393,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from silo_agent.agent import Agent
+    from silo_agent.service.daemon import Agent
 
     config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
     agent = Agent(args.config, config, max_scans=args.scans)
@@ -441,16 +441,16 @@ def _scan_dir(target: str, config_path: Path | None) -> Path:
         from silo_agent.config import ConfigError
 
         raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
-    from silo_agent.audit import AuditCache
+    from silo_agent.storage.audit import AuditCache
 
     config = load_config(config_path)
     return AuditCache(config.audit, config.silo.id).find(target)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from silo_agent.audit import comparable, differences
     from silo_agent.scan import ScanError
-    from silo_agent.scan_service import replay
+    from silo_agent.service.scan_path import replay
+    from silo_agent.storage.audit import comparable, differences
 
     try:
         directory = _scan_dir(args.scan, args.config)
@@ -471,8 +471,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_scans(args: argparse.Namespace) -> int:
-    from silo_agent.audit import RESULT, AuditCache
     from silo_agent.scan import ScanError, read_manifest
+    from silo_agent.storage.audit import RESULT, AuditCache
 
     config = load_config(args.config)
     cache = AuditCache(config.audit, config.silo.id)
@@ -706,7 +706,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     # pydantic scans every installed package for plugins at its first model (~0.02 s, paid by
     # every one-off `process`); the agent uses none. An explicit setting, even empty, wins.
     os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")
-    from silo_agent.heap import keep_freed_memory
+    from silo_agent.base.heap import keep_freed_memory
 
     keep_freed_memory()
     handler: Handler = args.handler
@@ -717,8 +717,8 @@ def _dispatch(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return INTERRUPTED
     except Exception as exc:  # bad input met where no command expected it: still one line
+        from silo_agent.base.limits import LimitExceeded
         from silo_agent.config import ConfigError  # loaded already if one was raised
-        from silo_agent.limits import LimitExceeded
         from silo_agent.scan import ScanError
 
         if isinstance(exc, ConfigError):

@@ -10,7 +10,7 @@ import os
 import shutil
 import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -20,15 +20,15 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from silo_agent.atomic import publish_directory
-from silo_agent.config import describe_validation_error
-from silo_agent.geometry import check_polygon, rigid_transform_problem
-from silo_agent.limits import (
+from silo_agent.base.atomic import publish_directory
+from silo_agent.base.limits import (
     MAX_CLOUD_POINTS,
     MAX_MANIFEST_BYTES,
     MAX_PLY_HEADER_BYTES,
     MAX_SCAN_POINTS,
 )
+from silo_agent.config import describe_validation_error
+from silo_agent.grid.geometry import check_polygon, gravity_angle_deg, rigid_transform_problem
 
 FORMAT = "silo-scan/1"
 MANIFEST = "scan.json"
@@ -102,6 +102,27 @@ class Scan:
 
 
 # ---------------------------------------------------------------- manifest schema
+
+
+def gravity_of(camera: CameraCloud) -> np.ndarray | None:
+    """The camera's IMU gravity vector (`gravity` in scan.json: down, camera axes), if any."""
+    value = camera.extra.get("gravity")
+    if value is None:
+        return None
+    vector = np.asarray(value, dtype=float)
+    if vector.shape != (3,) or not np.all(np.isfinite(vector)) or np.linalg.norm(vector) < 1e-6:
+        return None
+    return vector
+
+
+def gravity_angles(cameras: Sequence[CameraCloud]) -> dict[str, float]:
+    """Per camera: degrees between its measured gravity and the vertical its extrinsic claims."""
+    out = {}
+    for camera in cameras:
+        gravity = gravity_of(camera)
+        if gravity is not None:
+            out[camera.serial] = gravity_angle_deg(gravity, camera.extrinsic)
+    return out
 
 
 class _Open(BaseModel):

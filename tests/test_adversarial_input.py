@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
-from silo_agent.audit import AuditCache
 from silo_agent.config import AuditConfig
+from silo_agent.storage.audit import AuditCache
 from tests.support.agent import BASE, Daemon, write_config
 from tests.support.cli import run_cli
 from tests.support.mqtt import validate_json

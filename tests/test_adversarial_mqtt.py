@@ -13,7 +13,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from structlog.testing import capture_logs
 
-from silo_agent.telemetry.mqtt import POISON_STRIKES, Telemetry, reply_topic_problem
+from silo_agent.telemetry.client import POISON_STRIKES, Telemetry, reply_topic_problem
 from silo_agent.telemetry.outbox import Outbox
 from tests.support.mqtt import BASE, SILO, mqtt_config, realistic_heightmap, summary, validate_json
 from tests.support.mqtt_broker import Broker
@@ -297,7 +297,7 @@ def test_last_will_sorts_after_the_session_and_before_the_next(agent):
 def test_last_will_seq_is_re_armed_before_the_session_reaches_it(
     broker, telemetry_factory, collector_factory, monkeypatch
 ):
-    monkeypatch.setattr("silo_agent.telemetry.mqtt.WILL_SEQ_HEADROOM", 40)
+    monkeypatch.setattr("silo_agent.telemetry.client.WILL_SEQ_HEADROOM", 40)
     monkeypatch.setattr("silo_agent.telemetry.outbox.WILL_SEQ_HEADROOM", 40)
     tel = telemetry_factory(broker)
     col = collector_factory(broker, [f"{BASE}/#"])

@@ -551,8 +551,8 @@ def test_bad_time_zone_exits_78(tmp_path: Path):
 
 
 def test_cron_runs_in_the_site_time_zone_with_grace_and_coalescing(tmp_path: Path):
-    from silo_agent.agent import Agent
     from silo_agent.config import load_config
+    from silo_agent.service.daemon import Agent
 
     config_path = write_config(
         tmp_path / "agent.toml",
@@ -597,7 +597,7 @@ def test_notifier_speaks_to_abstract_sockets_and_honours_watchdog_pid(monkeypatc
     import os
     import socket
 
-    from silo_agent.sdnotify import Notifier
+    from silo_agent.service.sdnotify import Notifier
 
     name = f"silo-agent-test-{os.getpid()}"
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:

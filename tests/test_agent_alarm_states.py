@@ -14,7 +14,7 @@ import pysparkplug as ps
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from silo_agent.telemetry.payloads import ALARM_TYPES
+from silo_agent.analysis.alarm_types import ALARM_TYPES
 from tests.support.agent import BASE, SILO, Daemon, write_config
 from tests.support.mqtt import validate_json
 from tests.support.mqtt_broker import free_port

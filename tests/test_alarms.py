@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from silo_agent.alarms import (
+from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.analysis.alarms import (
     DETECTORS,
     AlarmState,
     Finding,
@@ -17,8 +18,7 @@ from silo_agent.alarms import (
     noise_floor,
 )
 from silo_agent.config import AlarmsConfig
-from silo_agent.heightmap import HeightMap
-from silo_agent.telemetry.payloads import ALARM_TYPES
+from silo_agent.grid.heightmap import HeightMap
 
 STEP = 0.05
 HALF = 3.0

@@ -1,4 +1,4 @@
-"""Durable writes have one home (silo_agent/atomic.py), and every writer gets all of it: the
+"""Durable writes have one home (silo_agent/base/atomic.py), and every writer gets all of it: the
 data fsynced before the rename and the parent directory after it. The calibration's config
 rewrite used to skip the directory, so the new config could vanish in a power cut."""
 
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import silo_agent
-from silo_agent.atomic import publish_directory, write_atomic
+from silo_agent.base.atomic import publish_directory, write_atomic
 from silo_agent.calibrate import write_calibrated_config
 
 ROOT = Path(silo_agent.__file__).parent
@@ -90,4 +90,4 @@ def test_only_atomic_py_syncs_to_disk() -> None:
                 and node.value.id == "os"
             ):
                 found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
-    assert found and all(f.startswith("atomic.py:") for f in found), found
+    assert found and all(f.startswith("base/atomic.py:") for f in found), found

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from silo_agent.audit import AuditCache, comparable, differences
 from silo_agent.config import AuditConfig
 from silo_agent.scan import CameraCloud, Scan, ScanError, Site, read_scan
+from silo_agent.storage.audit import AuditCache, comparable, differences
 
 T0 = datetime(2026, 11, 1, 6, 0, tzinfo=UTC)
 

@@ -124,7 +124,7 @@ def test_a_progress_bar_on_a_terminal_only(tmp_path, two_scans: list[Path]) -> N
 
 
 HEAVY = [
-    "scipy",  # the scan path's filters and fill are numpy (reconstruct/filters.py, fill.py)
+    "scipy",  # the scan path's filters and fill are numpy (grid/filters.py, reconstruct/fill.py)
     "structlog",
     "asyncio",
     "open3d",
@@ -137,7 +137,7 @@ HEAVY = [
     "silo_agent.capture",
     "silo_agent.calibrate",
     "silo_agent.sim",
-    "silo_agent.log",
+    "silo_agent.base.log",
 ]
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from silo_agent.base.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.calibrate import CalibrationError, rewrite_config_text, write_calibrated_config
 from silo_agent.config import load_config, parse_config
-from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
-from silo_agent.geometry import transform_from_euler
+from silo_agent.grid.geometry import transform_from_euler
 from silo_agent.scan import write_scan
 from tests.support.calib import render
 from tests.support.cli import run_cli

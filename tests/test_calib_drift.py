@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from silo_agent.analysis.drift import DriftMonitor, DriftState, drift_step
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
-from silo_agent.drift import DriftMonitor, DriftState, drift_step, gravity_angles
 from silo_agent.reconstruct import reconstruct
-from silo_agent.scan import CameraCloud
+from silo_agent.scan import CameraCloud, gravity_angles
 from silo_agent.sim.layouts import look_at, view_pose
 from tests.support.calib import knocked, render, rig
 
@@ -100,7 +100,7 @@ def test_simulated_imu_sees_a_knocked_camera() -> None:
 
 
 def test_the_calibration_alarm_follows_the_drift_detector() -> None:
-    from silo_agent.alarms import AlarmState, Inputs, evaluate
+    from silo_agent.analysis.alarms import AlarmState, Inputs, evaluate
     from silo_agent.config import AlarmsConfig
     from silo_agent.telemetry.payloads import Envelope, alarm_payload
 

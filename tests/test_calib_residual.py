@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
+from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import reconstruct
-from silo_agent.reconstruct.grid import Grid, fuse_and_crop
+from silo_agent.reconstruct.fuse import fuse_and_crop
 from silo_agent.reconstruct.residual import registration_residuals
 from tests.support.calib import render
 

@@ -10,13 +10,13 @@ import sys
 import numpy as np
 import pytest
 
-from silo_agent.analysis import AnalysisResult, analyse
+from silo_agent.analysis.scan_analysis import ScanAnalysis, analyse
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, match_ids
 from silo_agent.detect.geometric import Surface, grid_of
-from silo_agent.geometry import points_outside
-from silo_agent.reconstruct import Result, reconstruct
-from silo_agent.reconstruct.volume import base_surface
+from silo_agent.grid.geometry import points_outside
+from silo_agent.grid.volume import base_surface
+from silo_agent.reconstruct import Reconstruction, reconstruct
 from silo_agent.scan import Scan, write_scan
 from silo_agent.sim import make_scene, simulate
 from silo_agent.sim.scenes import _bay
@@ -89,10 +89,10 @@ def test_summary_and_description_carry_the_piles(piles_result) -> None:
 
 
 def test_the_reconstruction_leaves_piles_and_robots_to_the_analysis(piles_result) -> None:
-    """`Result` is the reconstruction's alone; the analysis puts the detection's keys and lines
-    where result.json, `P/scan` and `process` have always had them."""
-    assert isinstance(piles_result, AnalysisResult)
-    assert not {f.name for f in dataclasses.fields(Result)} & {"piles", "robots"}
+    """`Reconstruction` is the reconstruction's alone; the analysis puts the detection's keys
+    and lines where result.json, `P/scan` and `process` have always had them."""
+    assert isinstance(piles_result, ScanAnalysis)
+    assert not {f.name for f in dataclasses.fields(Reconstruction)} & {"piles", "robots"}
     alone = piles_result.reconstruction.summary()
     assert "piles" not in alone and "robots" not in alone
     keys = list(piles_result.summary())
@@ -225,9 +225,9 @@ def test_process_prints_piles_by_default_without_onnxruntime(piles_scan: Scan, t
 
 
 def test_scan_carries_pile_ids_over_from_the_latest_earlier_result(tmp_path) -> None:
-    from silo_agent.audit import AuditCache
     from silo_agent.config import AuditConfig
-    from silo_agent.scan_service import previous_piles
+    from silo_agent.service.scan_path import previous_piles
+    from silo_agent.storage.audit import AuditCache
 
     def result(scan_id: str, piles: list[Pile]) -> None:
         (tmp_path / scan_id).mkdir()

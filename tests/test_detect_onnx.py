@@ -17,7 +17,7 @@ import pytest
 from onnx import TensorProto, helper
 from pydantic import ValidationError
 
-from silo_agent.analysis import analyse
+from silo_agent.analysis.scan_analysis import analyse
 from silo_agent.config import Config, DetectionConfig, OnnxDetectionConfig, ReconstructionConfig
 from silo_agent.detect import ModelError
 from silo_agent.detect.onnx_yolo import YoloModel, camera_image, decode, letterbox, nms

@@ -1,5 +1,5 @@
 """The engine's numpy grid filters against scipy.ndimage, the library they stand in for on the
-scan path (silo_agent/reconstruct/filters.py says why), on random grids of awkward shapes:
+scan path (silo_agent/grid/filters.py says why), on random grids of awkward shapes:
 single rows and columns, windows longer than the grid, even windows, infinities."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from silo_agent.reconstruct import filters
+from silo_agent.grid import filters
 
 SHAPES = [(1, 1), (1, 7), (6, 1), (13, 9), (37, 120), (200, 173)]
 

@@ -1,4 +1,4 @@
-"""The agent keeps freed array memory for the next scan (silo_agent/heap.py)."""
+"""The agent keeps freed array memory for the next scan (silo_agent/base/heap.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 SNIPPET = """
 import resource, sys
 import numpy as np
-from silo_agent.heap import keep_freed_memory
+from silo_agent.base.heap import keep_freed_memory
 if sys.argv[1] == "keep":
     assert keep_freed_memory()
 np.ones(2_000_000)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from silo_agent.analysis import analyse
+from silo_agent.analysis.scan_analysis import analyse
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.sim import make_scene, simulate
 from silo_agent.telemetry.heightmap_codec import HEADER, decode_heightmap, encode_heightmap

@@ -1,5 +1,17 @@
-"""No import cycle between silo_agent's packages: each one can be read, tested and replaced
-from the bottom up (reconstruction below detection, both below the analysis that runs them).
+"""The layers of silo_agent, bottom up, and the directions imports may take between them: each
+package can be read, tested and replaced from the bottom up.
+
+    base            leaves: atomic files, exit statuses, limits, choices, logging
+    grid            the grid library: grid, height map, filters, smoothing, geometry, volume
+    config          the config models
+    scan            the scan types and the silo-scan/1 format
+    reconstruct detect sim          the algorithms and the simulated world
+    calibrate       the offline calibration tool (builds on the reconstruction's residuals)
+    analysis        pure evaluation: a scan's analysis, alarms, drift
+    capture storage telemetry       the edges: cameras, the audit cache, MQTT and Prometheus
+    live            live height maps for robots (frames in, maps out through telemetry's codec)
+    service         orchestration: the scan path, the pipeline, the daemon, batch, live control
+    cli             the command line
 
 Every import counts: inside functions (still a dependency when it runs) and under
 `if TYPE_CHECKING:` (a type one package names is part of what it depends on; a cycle hidden
@@ -111,6 +123,57 @@ def test_the_graph_sees_imports_for_type_checking() -> None:
         "silo_agent.detect.piles",
         "silo_agent.detect.piles.Pile",
     }
+
+
+LAYERS: dict[str, int] = {
+    "silo_agent.base": 0,
+    "silo_agent.grid": 1,
+    "silo_agent.config": 2,
+    "silo_agent.scan": 3,
+    "silo_agent.reconstruct": 4,
+    "silo_agent.detect": 4,
+    "silo_agent.sim": 4,
+    "silo_agent.calibrate": 5,
+    "silo_agent.analysis": 6,
+    "silo_agent.capture": 7,
+    "silo_agent.storage": 7,
+    "silo_agent.telemetry": 7,
+    "silo_agent.live": 8,
+    "silo_agent.service": 9,
+    "silo_agent.cli": 10,
+    "silo_agent.__main__": 11,
+}
+
+
+def test_every_package_has_a_layer() -> None:
+    assert set(package_graph()) - {"silo_agent"} == set(LAYERS)
+
+
+def test_imports_go_down_the_layers() -> None:
+    """A unit imports only units of lower layers: no peer and no upward import, so that e.g.
+    detection never reaches into the reconstruction and the domain never knows the wire."""
+    wrong = [
+        f"{unit} (layer {LAYERS[unit]}) imports {target} (layer {LAYERS[target]})"
+        for unit, targets in package_graph().items()
+        if unit in LAYERS
+        for target in sorted(targets)
+        if LAYERS[target] >= LAYERS[unit]
+    ]
+    assert wrong == []
+
+
+def test_no_private_name_crosses_a_package() -> None:
+    """`from silo_agent.x import _name` only inside x's own package: what another package needs
+    is public."""
+    crossing = []
+    for path in sorted(ROOT.rglob("*.py")):
+        unit = _unit(_module_name(path))
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("silo_agent."):
+                private = [a.name for a in node.names if a.name.startswith("_")]
+                if private and _unit(node.module or "") != unit:
+                    crossing.append(f"{path.relative_to(ROOT)}: {node.module} {private}")
+    assert crossing == []
 
 
 def test_no_import_cycle_between_packages() -> None:

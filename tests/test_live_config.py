@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from silo_agent.config import ConfigError, LiveConfig, parse_config
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.heightmap import HeightMap
 from silo_agent.live.map import DepthFrame, LiveMap
-from silo_agent.reconstruct.grid import Grid
 from silo_agent.telemetry.live_command import LiveRequest, parse_live_request, session_limits
 
 BASE = {

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from silo_agent.config import LiveConfig
+from silo_agent.grid.grid import Grid
 from silo_agent.live.map import DepthFrame, LiveMap, LiveUpdate
-from silo_agent.reconstruct.grid import Grid
 from silo_agent.sim.robot import RakingRobot, RobotPose, RobotRig
 
 TIMES = np.arange(0.0, 10.5, 0.5)  # the robot climbs the first heap from t ~ 4 s

@@ -19,10 +19,10 @@ import pytest
 from onnx import TensorProto, helper
 
 from silo_agent.config import Config, parse_config
+from silo_agent.grid.grid import Grid
 from silo_agent.live.map import DepthFrame, LiveMap, LiveUpdate
 from silo_agent.live.model import LiveRobotModel
 from silo_agent.live.session import LiveSession
-from silo_agent.reconstruct.grid import Grid
 from silo_agent.sim.robot import ROBOT_SIZE_M, RobotPose, RobotRig
 from silo_agent.telemetry.heightmap_codec import decode_live_heightmap
 

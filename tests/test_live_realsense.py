@@ -10,9 +10,9 @@ import pytest
 
 from silo_agent.capture import CaptureError
 from silo_agent.config import parse_config
+from silo_agent.grid.grid import Grid
 from silo_agent.live.map import LiveMap
 from silo_agent.live.session import open_source
-from silo_agent.reconstruct.grid import Grid
 from silo_agent.sim.robot import RobotRig
 
 TIMES = (0.0, 0.5, 1.0, 1.5)

@@ -6,8 +6,8 @@ import json
 
 import jinja2
 
+from silo_agent.analysis.alarm_types import ALARM_TYPES
 from silo_agent.config import ScheduleConfig, stale_after_s
-from silo_agent.telemetry.payloads import ALARM_TYPES
 from tests.support.mqtt import BASE, SILO, summary, validate_json
 
 CONFIG = f"homeassistant/device/silo_agent_{SILO}/config"

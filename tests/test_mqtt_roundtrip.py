@@ -8,8 +8,8 @@ import numpy as np
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from silo_agent.telemetry.client import CommandRejected, ScanCommand
 from silo_agent.telemetry.heightmap_codec import decode_heightmap_with_ids, encode_heightmap
-from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand
 from tests.support.mqtt import BASE, realistic_heightmap, summary, validate_json
 
 

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 from silo_agent.config import ConfigError, MqttConfig
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.heightmap import HeightMap
 from silo_agent.telemetry import __main__ as cli
+from silo_agent.telemetry.client import read_secret
 from silo_agent.telemetry.heightmap_codec import (
     HEADER,
     HeightMapFormatError,
     decode_heightmap,
     encode_heightmap,
 )
-from silo_agent.telemetry.mqtt import read_secret
 from silo_agent.telemetry.outbox import Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import check_summary, json_schemas, render_schema
 from tests.support.mqtt import SCHEMAS, realistic_heightmap, summary
@@ -193,7 +193,7 @@ def test_mqtt_config_rejects_contradictions():
 
 @pytest.mark.broker  # starts its own mosquitto
 def test_drops_are_reported_on_status(tmp_path):
-    from silo_agent.telemetry.mqtt import Telemetry
+    from silo_agent.telemetry.client import Telemetry
     from tests.support.mqtt import mqtt_config
     from tests.support.mqtt_broker import Broker
 
@@ -231,7 +231,7 @@ def test_the_documented_numpy_decoder_decodes_a_published_map():
 
 @pytest.mark.broker  # starts its own mosquitto
 def test_a_bad_result_queues_nothing_and_stale_sparkplug_rows_are_dropped(tmp_path):
-    from silo_agent.telemetry.mqtt import Telemetry
+    from silo_agent.telemetry.client import Telemetry
     from tests.support.mqtt import mqtt_config
     from tests.support.mqtt_broker import Broker
 

@@ -1,6 +1,6 @@
 """Each default and each exit status has one home: the outbox bounds, the alarms' fallbacks and
 the command line's defaults follow config.py, and exit statuses are defined only in
-silo_agent/exits.py. Changed at the source, a value must change everywhere."""
+silo_agent/base/exits.py. Changed at the source, a value must change everywhere."""
 
 from __future__ import annotations
 
@@ -29,12 +29,12 @@ for model, values in fields.items():
     for name, value in values.items():
         model.model_fields[name].default = value
 # the flags' defaults live in choices.py, which config.py's fields are built from (checked below)
-from silo_agent import choices
+from silo_agent.base import choices
 choices.DEFAULT_GRID_STEP_M, choices.DEFAULT_GRAIN = 0.05, "corn"
 
-from silo_agent.alarms import Inputs
+from silo_agent.analysis.alarms import Inputs
 from silo_agent.cli import build_parser
-from silo_agent.drift import DriftMonitor, drift_step
+from silo_agent.analysis.drift import DriftMonitor, drift_step
 from silo_agent.telemetry.outbox import OutboxLimits
 
 limits = OutboxLimits()
@@ -66,7 +66,8 @@ def test_defaults_follow_config_py() -> None:
 
 
 def test_config_fields_take_the_shared_choices() -> None:
-    from silo_agent import choices, config
+    from silo_agent import config
+    from silo_agent.base import choices
 
     reconstruction, simulation = config.ReconstructionConfig(), config.SimulationConfig()
     assert reconstruction.method == choices.DEFAULT_METHOD
@@ -92,4 +93,4 @@ def test_exit_statuses_are_defined_only_in_exits() -> None:
                     for n in names
                     if n.startswith("EX_") or n in status_names
                 ]
-    assert defined and all(d.startswith("exits.py:") for d in defined), defined
+    assert defined and all(d.startswith("base/exits.py:") for d in defined), defined

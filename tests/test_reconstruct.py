@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from silo_agent.config import ReconstructionConfig
-from silo_agent.geometry import cell_fractions, polygon_area, transform_from_euler
+from silo_agent.grid.geometry import cell_fractions, polygon_area, transform_from_euler
 from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
 from silo_agent.scan import CameraCloud, Scan, Site, write_scan
@@ -183,7 +183,7 @@ def test_volume_over_a_triangle_region() -> None:
     # truth by fine numeric integration of the analytic surface over the triangle
     step = 0.002
     xs, ys = np.meshgrid(np.arange(-2, 2, step) + step / 2, np.arange(-2, 2, step) + step / 2)
-    from silo_agent.geometry import points_in_polygon
+    from silo_agent.grid.geometry import points_in_polygon
 
     inside = points_in_polygon(xs, ys, triangle)
     truth = float(np.sum(scene.height(xs, ys)[inside]) * step * step)
@@ -329,9 +329,9 @@ def test_slope_correction_reaches_the_whole_of_a_round_region() -> None:
     interior cell of a round silo to the plane at its centre. Outside the circle the map has no
     surface (NaN), which a plain 3 x 3 mean carried along whole rows, switching the correction
     off over most of the region."""
+    from silo_agent.grid.filters import dilate_cross
+    from silo_agent.grid.grid import Grid
     from silo_agent.reconstruct import _slope_corrected
-    from silo_agent.reconstruct.filters import dilate_cross
-    from silo_agent.reconstruct.grid import Grid
 
     step, rows = 0.05, 60
     angle = np.linspace(0, 2 * np.pi, 64, endpoint=False)

@@ -10,7 +10,13 @@ import pytest
 
 
 @pytest.mark.parametrize(
-    "module", ["silo_agent.pipeline", "silo_agent.agent", "silo_agent.alarms", "silo_agent.drift"]
+    "module",
+    [
+        "silo_agent.service.pipeline",
+        "silo_agent.service.daemon",
+        "silo_agent.analysis.alarms",
+        "silo_agent.analysis.drift",
+    ],
 )
 def test_runtime_module_does_not_load_calibrate(module: str) -> None:
     code = (

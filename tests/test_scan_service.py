@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from silo_agent.audit import comparable
 from silo_agent.cli import main
+from silo_agent.storage.audit import comparable
 from silo_agent.telemetry.payloads import check_summary
 from tests.support.agent import Daemon, write_config
 

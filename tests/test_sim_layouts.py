@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from silo_agent.geometry import transform_from_euler
+from silo_agent.grid.geometry import transform_from_euler
 from silo_agent.scan import Scan
 from silo_agent.sim import SimRig, make_scene, simulate, view_pose
 from silo_agent.sim.camera import NoiseModel

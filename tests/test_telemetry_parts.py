@@ -21,7 +21,7 @@ from tests.support.mqtt import BASE, SILO
 
 TELEMETRY = Path(silo_agent.telemetry.__file__).parent
 TRANSPORT = {"link", "pump", "transport"}  # the network side, bottom up
-ON_TOP = {"commands", "session", "mqtt"}
+ON_TOP = {"commands", "mqtt_session", "client"}
 
 
 def telemetry_imports(module: str) -> set[str]:
@@ -45,9 +45,9 @@ def test_the_transport_imports_nothing_that_runs_on_top_of_it() -> None:
 
 
 def test_commands_and_session_know_neither_each_other_nor_the_facade() -> None:
-    assert not telemetry_imports("commands") & {"session", "mqtt", "transport"}
-    assert not telemetry_imports("session") & {"commands", "mqtt", "transport"}
-    assert {"commands", "session", "transport"} <= telemetry_imports("mqtt")
+    assert not telemetry_imports("commands") & {"mqtt_session", "client", "transport"}
+    assert not telemetry_imports("mqtt_session") & {"commands", "client", "transport"}
+    assert {"commands", "mqtt_session", "transport"} <= telemetry_imports("client")
 
 
 def message(topic: str, payload: bytes) -> mqtt.MQTTMessage:

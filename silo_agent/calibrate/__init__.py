@@ -23,8 +23,8 @@ that their noise averages) fixes that:
    small error.
 
 `config_file.py` writes the result back into the site's config. Drift monitoring runs inside
-the daemon and lives with the runtime (`silo_agent.drift`): the daemon does not import this
-package, except `refine` when `calibration.refine` is on.
+the daemon and lives with the analysis (`silo_agent.analysis.drift`): the daemon does not
+import this package, except `refine` when `calibration.refine` is on.
 """
 
 from silo_agent.calibrate.config_file import rewrite_config_text, write_calibrated_config

@@ -15,10 +15,10 @@ import tomlkit
 from tomlkit.exceptions import TOMLKitError
 from tomlkit.items import AbstractTable, Item
 
-from silo_agent.atomic import write_atomic
+from silo_agent.base.atomic import write_atomic
 from silo_agent.calibrate.errors import CalibrationError
 from silo_agent.config import ConfigError, parse_config
-from silo_agent.geometry import euler_from_rotation
+from silo_agent.grid.geometry import euler_from_rotation
 
 
 def _number(value: float) -> str:

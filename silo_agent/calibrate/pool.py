@@ -10,8 +10,7 @@ from typing import Any
 import numpy as np
 
 from silo_agent.calibrate.errors import ScanMismatch
-from silo_agent.drift import gravity_of
-from silo_agent.scan import Scan, Site
+from silo_agent.scan import Scan, Site, gravity_of
 
 
 def _site_difference(a: Site, b: Site) -> str | None:

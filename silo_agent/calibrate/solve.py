@@ -15,11 +15,11 @@ from silo_agent.calibrate.floor import FLOOR_MIN_POINTS, fit_plane, floor_points
 from silo_agent.calibrate.register import PairRegistration, register
 from silo_agent.calibrate.rigid import UP, about, planar_procrustes, pose_change, rotation_between
 from silo_agent.config import CalibrationConfig, Config, SpacingConfig
-from silo_agent.drift import gravity_angles, gravity_of
-from silo_agent.geometry import euler_from_rotation
-from silo_agent.reconstruct.grid import Grid, fuse_and_crop
+from silo_agent.grid.geometry import euler_from_rotation
+from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct.fuse import fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.scan import CameraCloud, Scan, Site
+from silo_agent.scan import CameraCloud, Scan, Site, gravity_angles, gravity_of
 
 
 @dataclass(frozen=True)

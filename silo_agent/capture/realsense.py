@@ -24,7 +24,7 @@ import structlog
 
 from silo_agent.capture import CaptureError
 from silo_agent.config import CameraConfig, Config
-from silo_agent.geometry import gravity_angle_deg
+from silo_agent.grid.geometry import gravity_angle_deg
 from silo_agent.scan import CameraCloud
 
 log = structlog.get_logger(__name__)
@@ -55,7 +55,7 @@ def _context() -> rs.context:
     return rs.context()
 
 
-class _DeviceFault(Exception):
+class DeviceFault(Exception):
     """A timeout or librealsense error on an open device: what a hardware reset may cure."""
 
 
@@ -214,7 +214,7 @@ class RealSenseCamera:
         for attempt in range(1, attempts):
             try:
                 return self._attempt()
-            except _DeviceFault as exc:
+            except DeviceFault as exc:
                 log.warning(
                     "capture failed, resetting camera",
                     camera=self.serial,
@@ -225,7 +225,7 @@ class RealSenseCamera:
                 self._reset()
         try:
             return self._attempt()
-        except _DeviceFault as exc:
+        except DeviceFault as exc:
             tries = f" (after {attempts} attempts)" if attempts > 1 else ""
             raise CaptureError(f"camera {self.serial}: {exc}{tries}") from None
 
@@ -233,7 +233,7 @@ class RealSenseCamera:
         try:
             return self._capture_once()
         except RuntimeError as exc:  # librealsense reports USB trouble from any call
-            raise _DeviceFault(str(exc)) from None
+            raise DeviceFault(str(exc)) from None
 
     def close(self) -> None:
         """Nothing to release: each capture starts and stops its own pipeline, so a stuck
@@ -279,7 +279,7 @@ class RealSenseCamera:
                 profile = pipe.start(cfg)
             except RuntimeError as exc:
                 if self._live:
-                    raise _DeviceFault(f"cannot start streaming: {exc}") from None
+                    raise DeviceFault(f"cannot start streaming: {exc}") from None
                 raise CaptureError(
                     f"camera {self.serial}: cannot play recording {self._recording}: {exc}"
                 ) from None
@@ -310,7 +310,7 @@ class RealSenseCamera:
             device = profile.get_device()
             sensor = device.first_depth_sensor()
             if self._live:
-                _configure(sensor, self._camera)
+                configure_depth_sensor(sensor, self._camera)
             frames = self._collect(pipe, deadline)
             extra = self._metadata(device, sensor, frames)
         try:
@@ -354,7 +354,7 @@ class RealSenseCamera:
             if ok:
                 return frames
         cam = self._camera
-        raise _DeviceFault(
+        raise DeviceFault(
             f"timed out after {cam.timeout_s:g} s with {got} of {cam.warmup_frames + cam.frames} "
             f"frames ({cam.warmup_frames} warm-up + {cam.frames} to aggregate)"
         )
@@ -379,7 +379,7 @@ class RealSenseCamera:
                 frameset = align.process(frameset)
                 color_frame = frameset.get_color_frame()
                 if color_frame:
-                    color = _rgb(color_frame)
+                    color = rgb_image(color_frame)
             raw = frameset.get_depth_frame()
             if raw.supports_frame_metadata(rs.frame_metadata_value.actual_exposure):
                 exposure = float(raw.get_frame_metadata(rs.frame_metadata_value.actual_exposure))
@@ -454,7 +454,7 @@ class RealSenseCamera:
                         if frame.is_motion_frame():
                             data = frame.as_motion_frame().get_motion_data()
                             samples.append((data.x, data.y, data.z))
-        except (RuntimeError, _DeviceFault, CaptureError) as exc:
+        except (RuntimeError, DeviceFault, CaptureError) as exc:
             log.warning("cannot read the IMU", camera=self.serial, error=str(exc))
             return {}
         if not samples:
@@ -514,7 +514,7 @@ def _drain(pipe: rs.pipeline, playback: rs.playback) -> None:
         pipe.try_wait_for_frames(100)
 
 
-def _configure(sensor: rs.sensor, cam: CameraConfig) -> None:
+def configure_depth_sensor(sensor: rs.sensor, cam: CameraConfig) -> None:
     """Live depth settings: preset first (it may change the others), then emitter and laser."""
     settings = [
         (rs.option.visual_preset, float(_PRESETS[cam.visual_preset])),
@@ -555,7 +555,7 @@ def record_camera(cam: CameraConfig, path: Path, seconds: float) -> int:
         raise CaptureError(f"camera {cam.serial}: cannot start recording: {exc}") from None
     framesets = 0
     try:
-        _configure(profile.get_device().first_depth_sensor(), cam)
+        configure_depth_sensor(profile.get_device().first_depth_sensor(), cam)
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             ok, _frames = pipe.try_wait_for_frames(int(cam.timeout_s * 1000))
@@ -572,7 +572,7 @@ def record_camera(cam: CameraConfig, path: Path, seconds: float) -> int:
     return framesets
 
 
-def _rgb(frame: rs.video_frame) -> np.ndarray | None:
+def rgb_image(frame: rs.video_frame) -> np.ndarray | None:
     image = np.asanyarray(frame.get_data())
     fmt = frame.get_profile().format()
     if fmt == rs.format.rgb8:

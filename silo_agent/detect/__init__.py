@@ -1,8 +1,8 @@
 """Pile detection: the geometric detector on the height map, and a site's YOLO model (ONNX).
 
 Detection works on what the reconstruction produced (it sits above `silo_agent.reconstruct`);
-`silo_agent.analysis.analyse` runs the two in order. onnxruntime is imported only when a model
-is configured.
+`silo_agent.analysis.scan_analysis.analyse` runs the two in order. onnxruntime is imported
+only when a model is configured.
 """
 
 from __future__ import annotations

@@ -26,11 +26,11 @@ import numpy as np
 
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
-from silo_agent.heightmap import HeightMap
-from silo_agent.reconstruct.filters import maximum_filter, minimum_filter
-from silo_agent.reconstruct.grid import Grid
-from silo_agent.reconstruct.smooth import masked_smooth
-from silo_agent.reconstruct.volume import DENOISE_SCALE_M, counted_columns, denoised_columns
+from silo_agent.grid.filters import maximum_filter, minimum_filter
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.grid.smooth import masked_smooth
+from silo_agent.grid.volume import DENOISE_SCALE_M, counted_columns, denoised_columns
 
 __all__ = ["Surface", "detect_piles", "grid_of", "relief"]
 

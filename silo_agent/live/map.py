@@ -33,8 +33,8 @@ import numpy as np
 from scipy import ndimage
 
 from silo_agent.config import LiveConfig
-from silo_agent.heightmap import HeightMap
-from silo_agent.reconstruct.grid import Grid
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.heightmap import HeightMap
 
 if TYPE_CHECKING:
     from silo_agent.sim.camera import Frame

@@ -22,10 +22,10 @@ import structlog
 from silo_agent.capture import CaptureError
 from silo_agent.config import Config
 from silo_agent.detect.piles import ModelError
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.heightmap import HeightMap
 from silo_agent.live.map import DepthFrame, LiveMap
 from silo_agent.live.model import LiveRobotModel
-from silo_agent.reconstruct.grid import Grid
 from silo_agent.telemetry.heightmap_codec import encode_live_heightmap
 
 log = structlog.get_logger(__name__)
@@ -91,7 +91,7 @@ def open_source(config: Config) -> FrameSource:
             "live mode cannot mix sim cameras with D455s or recordings; "
             "choose them with [live] cameras"
         )
-    from silo_agent.live.realsense import RealSenseFrameSource
+    from silo_agent.live.realsense_frames import RealSenseFrameSource
 
     return RealSenseFrameSource(config, serials)
 

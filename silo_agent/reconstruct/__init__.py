@@ -14,15 +14,12 @@ from typing import Any
 import numpy as np
 
 from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
-from silo_agent.geometry import points_outside
-from silo_agent.heightmap import HeightMap
-from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
-from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
-from silo_agent.reconstruct.filters import box_mean, dilate_cross, maximum_filter, minimum_filter
-from silo_agent.reconstruct.grid import CellMoments, FusedCloud, Grid, fuse_and_crop
-from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.reconstruct.smooth import masked_smooth
-from silo_agent.reconstruct.volume import (
+from silo_agent.grid.filters import box_mean, dilate_cross, maximum_filter, minimum_filter
+from silo_agent.grid.geometry import points_outside
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.grid.smooth import masked_smooth
+from silo_agent.grid.volume import (
     DENOISE_SCALE_M,
     Levels,
     base_plane,
@@ -31,9 +28,13 @@ from silo_agent.reconstruct.volume import (
     integrate_counted,
     surface_levels,
 )
+from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
+from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
+from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
+from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.scan import Scan, Site
 
-__all__ = ["Result", "reconstruct", "site_from_config"]
+__all__ = ["Reconstruction", "reconstruct", "site_from_config"]
 
 EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted_cells)
 EDGE_DENSITY_RATIO = 0.5
@@ -41,8 +42,8 @@ SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spi
 
 
 @dataclass
-class Result:
-    """Everything a scan's reconstruction says; `silo_agent.analysis` adds what detection finds."""
+class Reconstruction:
+    """Everything a scan's reconstruction says; `analysis.scan_analysis` adds detection's finds."""
 
     scan_id: str
     method: str
@@ -200,7 +201,7 @@ def reconstruct(
     site: Site | None = None,
     exclude: Sequence[tuple[float, float, float]] = (),
     calibration: CalibrationConfig | None = None,
-) -> Result:
+) -> Reconstruction:
     """Run the configured method on `scan`; `site` overrides the scan's own site.
 
     `exclude` lists silo-frame discs (x, y, radius) whose points are not grain (a leveling
@@ -311,7 +312,7 @@ def _result(
     clock: _Clock,
     counted: np.ndarray | None = None,
     base: tuple[float, float, float] | None = None,
-) -> Result:
+) -> Reconstruction:
     """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map."""
     region_area = float(np.sum(grid.inside))
     coverage = float(np.sum(grid.inside * observed) / region_area)
@@ -337,7 +338,7 @@ def _result(
         if np.any(np.isfinite(heights)):
             surface = surface_levels(grid, heights)
     density = site.bulk_density_t_m3
-    return Result(
+    return Reconstruction(
         scan_id=scan.scan_id,
         method=settings.method,
         grid_step_m=settings.grid_step_m,

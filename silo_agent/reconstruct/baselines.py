@@ -16,8 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from silo_agent.config import ReconstructionConfig
-from silo_agent.reconstruct.grid import FusedCloud, Grid
-from silo_agent.reconstruct.volume import base_surface, integrate
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.volume import base_surface, integrate
+from silo_agent.reconstruct.fuse import FusedCloud
 from silo_agent.scan import Site
 
 

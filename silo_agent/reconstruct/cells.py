@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.reconstruct.grid import CellMoments, Grid
+from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct.fuse import CellMoments
 from silo_agent.reconstruct.residual import median
 
 Z_QUANTUM_M = 1e-4  # height resolution inside the sort key

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.reconstruct.grid import FusedCloud, Grid
+from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct.fuse import FusedCloud
 
 MAX_SPREAD_M = 0.05  # a camera's points in a cell spread more in height: a wall, not a surface
 MAX_SLOPE = 1.0  # 45 deg; grain stands at 23-40 deg, walls and pile edges seen edge-on do not

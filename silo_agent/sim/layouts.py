@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from silo_agent.choices import VIEW_NAMES
+from silo_agent.base.choices import VIEW_NAMES
 from silo_agent.sim.scenes import Scene
 
 LAYOUTS = ("paper", "wall")

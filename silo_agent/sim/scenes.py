@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from silo_agent.geometry import cell_fractions
+from silo_agent.grid.geometry import cell_fractions
 from silo_agent.scan import Site
 from silo_agent.sim.grains import Grain, grain
 

@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from silo_agent.geometry import gravity_angle_deg
+from silo_agent.grid.geometry import gravity_angle_deg
 from silo_agent.scan import CameraCloud, Scan
 from silo_agent.sim.camera import Frame, Intrinsics, NoiseModel, d455_intrinsics, expose, trace
 from silo_agent.sim.layouts import perturb, view_pose

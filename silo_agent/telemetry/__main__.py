@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from silo_agent.base.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.config import ConfigError, load_config
-from silo_agent.exits import CONFIG_ERROR as EX_CONFIG
-from silo_agent.heightmap import HeightMap
-from silo_agent.telemetry.mqtt import Telemetry
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.telemetry.client import Telemetry
 from silo_agent.telemetry.payloads import Envelope, json_schemas, render_schema, write_schemas
 
 DEFAULT_SCHEMAS = Path(__file__).resolve().parents[2] / "config" / "schemas"
@@ -135,7 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.set_defaults(handler=cmd_schemas)
     args = parser.parse_args(argv)
 
-    from silo_agent.log import configure_logging
+    from silo_agent.base.log import configure_logging
 
     configure_logging(args.log_level)
     try:

@@ -72,7 +72,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.heightmap import HeightMap
 
 MAGIC = b"SLHM"
 VERSION = 2

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import structlog
 
-from silo_agent.atomic import write_atomic
+from silo_agent.base.atomic import write_atomic
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry.payloads import Envelope
 

@@ -19,19 +19,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 SAFE_NAME = r"^[A-Za-z0-9_-]+$"
 MAX_COMMAND_BYTES = 65536
 
-# Alarm types every consumer can count on (Sparkplug NBIRTH and HA declare them up front);
-# others may appear and are added as they are seen.
-ALARM_TYPES = (
-    "collapse",
-    "level_high",
-    "level_low",
-    "change",
-    "camera",
-    "coverage",
-    "cache",
-    "calibration",
-)
-
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

@@ -19,8 +19,8 @@ from typing import Any
 
 from google.protobuf.message import DecodeError
 
+from silo_agent.analysis.alarm_types import ALARM_TYPES
 from silo_agent.telemetry import sparkplug_b_pb2 as pb
-from silo_agent.telemetry.payloads import ALARM_TYPES
 
 NAMESPACE = "spBv1.0"
 REBIRTH = "Node Control/Rebirth"

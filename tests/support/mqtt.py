@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from silo_agent.config import MqttConfig
-from silo_agent.heightmap import HeightMap
-from silo_agent.telemetry.mqtt import Telemetry
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.telemetry.client import Telemetry
 from tests.support.mqtt_broker import Broker, Collector
 
 ROOT = Path(__file__).resolve().parents[2]

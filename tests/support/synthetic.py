@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.geometry import transform_from_euler
+from silo_agent.grid.geometry import transform_from_euler
 from silo_agent.scan import CameraCloud, Scan, Site
 
 HeightField = Callable[[np.ndarray, np.ndarray], np.ndarray]

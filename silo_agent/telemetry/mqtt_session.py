@@ -17,12 +17,12 @@ import structlog
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from silo_agent.analysis.alarm_types import ALARM_TYPES
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.link import HEIGHTMAP_CONTENT_TYPE, JSON_LINK, Link
 from silo_agent.telemetry.outbox import Outbox
 from silo_agent.telemetry.payloads import (
-    ALARM_TYPES,
     AgentState,
     CameraState,
     Envelope,

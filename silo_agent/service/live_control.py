@@ -15,10 +15,10 @@ from datetime import UTC, datetime
 import structlog
 
 from silo_agent.config import Config
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.heightmap import HeightMap
 from silo_agent.live.session import LiveSession
+from silo_agent.telemetry.client import CommandRejected, Telemetry
 from silo_agent.telemetry.live_command import LiveCommand, session_limits
-from silo_agent.telemetry.mqtt import CommandRejected, Telemetry
 
 log = structlog.get_logger(__name__)
 

@@ -12,8 +12,8 @@ from wsgiref.simple_server import WSGIServer
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 
+from silo_agent.analysis.alarm_types import ALARM_TYPES
 from silo_agent.config import MetricsConfig
-from silo_agent.telemetry.payloads import ALARM_TYPES
 
 STAGE_BUCKETS = (0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600)
 SCAN_OUTCOMES = ("ok", "invalid", "failed")

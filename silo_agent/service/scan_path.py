@@ -2,7 +2,7 @@
 
 A scan carries the config snapshot it was taken with (`scan.json` key `config`, next to its
 `reconstruction` settings and `site`), and the analysis arguments are always derived from the
-scan itself (`analysis_of`), so a later `replay` processes it exactly as it was processed when
+scan itself (`settings_of`), so a later `replay` processes it exactly as it was processed when
 it was published, `[calibration]` included. Every path builds its summary with `summarise`
 (the shape `telemetry.payloads.ScanPayload` validates, plus the engine's details) and keeps it
 with `keep_result`, atomically, through the audit cache.
@@ -32,11 +32,11 @@ from silo_agent.config import (
 from silo_agent.scan import MANIFEST, Scan, ScanError, Site, read_scan
 
 if TYPE_CHECKING:
-    from silo_agent.analysis import AnalysisResult
-    from silo_agent.audit import AuditCache
+    from silo_agent.analysis.scan_analysis import ScanAnalysis
     from silo_agent.capture import CameraFailure
     from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud
+    from silo_agent.storage.audit import AuditCache
 
 Model = TypeVar("Model", bound=BaseModel)
 
@@ -44,7 +44,7 @@ CONFIG_KEY = "config"  # scan.json: the config snapshot the scan was taken and p
 
 
 @dataclass(frozen=True)
-class Analysis:
+class AnalysisSettings:
     """Everything `analysis.analyse` is called with besides the scan and the previous piles."""
 
     settings: ReconstructionConfig
@@ -89,7 +89,7 @@ def new_scan(
     )
 
 
-def analysis_of(scan: Scan) -> Analysis:
+def settings_of(scan: Scan) -> AnalysisSettings:
     """The analysis arguments a scan was (or is to be) processed with: its reconstruction
     settings and site, the detection and calibration of its config snapshot (defaults for a
     scan without one, e.g. a simulated scan)."""
@@ -102,7 +102,7 @@ def analysis_of(scan: Scan) -> Analysis:
     calibration = _validated(
         CalibrationConfig, snapshot.get("calibration") or {}, f"{manifest}: config.calibration"
     )
-    return Analysis(settings, detection, scan.site, calibration)
+    return AnalysisSettings(settings, detection, scan.site, calibration)
 
 
 def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
@@ -113,18 +113,18 @@ def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
 
 
 def overridden(
-    analysis: Analysis,
+    analysis: AnalysisSettings,
     config: Config | None,
     grid_step_m: float | None = None,
     method: str | None = None,
-) -> Analysis:
+) -> AnalysisSettings:
     """`process`: the scan's own analysis, then what `config` sets, then the flags (later wins)."""
     from silo_agent.reconstruct import site_from_config
 
     merged = analysis.settings.model_dump()
     if config is not None:
         merged.update(config.reconstruction.model_dump(exclude_unset=True))
-        analysis = Analysis(
+        analysis = AnalysisSettings(
             analysis.settings, config.detection, site_from_config(config), config.calibration
         )
     if grid_step_m is not None:
@@ -137,9 +137,9 @@ def overridden(
         raise ConfigError(describe_validation_error(exc, "reconstruction settings")) from None
 
 
-def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> AnalysisResult:
+def analyse_with(scan: Scan, analysis: AnalysisSettings, previous: list[Pile]) -> ScanAnalysis:
     """Reconstruct and detect, as every path does it."""
-    from silo_agent.analysis import analyse
+    from silo_agent.analysis.scan_analysis import analyse
 
     return analyse(
         scan,
@@ -151,7 +151,7 @@ def analyse_scan(scan: Scan, analysis: Analysis, previous: list[Pile]) -> Analys
     )
 
 
-def summarise(result: AnalysisResult, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
+def summarise(result: ScanAnalysis, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
     """The result as published on `P/scan` and kept as `result.json` by every path."""
     failures = scan.extra.get("failures") or []
     summary = result.summary()
@@ -168,8 +168,8 @@ def summarise(result: AnalysisResult, scan: Scan, timings: dict[str, float]) -> 
 def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
     """Piles of the latest cached scan before `scan_id` with a result, so pile ids carry over;
     none when there is no readable one. Ids are `<silo>-<UTC time>`: they sort by time."""
-    from silo_agent.audit import RESULT
     from silo_agent.detect import Pile
+    from silo_agent.storage.audit import RESULT
 
     for entry in reversed(cache.entries()):
         if entry.scan_id >= scan_id:
@@ -190,10 +190,10 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
 
 
 def keep_result(
-    directory: Path, summary: dict[str, Any], result: AnalysisResult, previous: list[Pile]
+    directory: Path, summary: dict[str, Any], result: ScanAnalysis, previous: list[Pile]
 ) -> None:
     """The summary, height map and processing inputs next to the scan, each written atomically."""
-    from silo_agent.audit import AuditCache
+    from silo_agent.storage.audit import AuditCache
 
     inputs = {"previous_piles": [p.to_json() for p in previous]}
     AuditCache.add_result(directory, summary, result.reconstruction.heightmap, inputs)
@@ -204,22 +204,22 @@ def process_directory(
     config: Config | None = None,
     grid_step_m: float | None = None,
     method: str | None = None,
-) -> tuple[Scan, AnalysisResult, dict[str, Any]]:
+) -> tuple[Scan, ScanAnalysis, dict[str, Any]]:
     """`silo-agent process` of one scan directory: (scan, result, summary); nothing written.
 
     Raises ScanError for a bad directory, ConfigError for bad settings, ModelError for a bad
     detection model."""
     scan = read_scan(directory)
-    analysis = overridden(analysis_of(scan), config, grid_step_m, method)
-    result = analyse_scan(scan, analysis, [])
+    analysis = overridden(settings_of(scan), config, grid_step_m, method)
+    result = analyse_with(scan, analysis, [])
     return scan, result, summarise(result, scan, {})
 
 
 def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """(published, replayed) results of a cached scan, processed again exactly as it was
     processed: its own analysis arguments and the previous piles that gave pile ids."""
-    from silo_agent.audit import INPUTS, RESULT
     from silo_agent.detect import Pile
+    from silo_agent.storage.audit import INPUTS, RESULT
 
     scan = read_scan(directory)
     try:
@@ -231,5 +231,5 @@ def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     except FileNotFoundError:
         inputs = {}
     previous = [Pile.from_json(p) for p in inputs.get("previous_piles") or []]
-    result = analyse_scan(scan, analysis_of(scan), previous)
+    result = analyse_with(scan, settings_of(scan), previous)
     return published, summarise(result, scan, {})

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from silo_agent.limits import MAX_COORDINATE_M
+from silo_agent.base.limits import MAX_COORDINATE_M
 
 
 def rigid_transform_problem(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:

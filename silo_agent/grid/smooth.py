@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from silo_agent.reconstruct.filters import box_mean
+from silo_agent.grid.filters import box_mean
 
 
 def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> np.ndarray:

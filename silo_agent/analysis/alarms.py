@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from silo_agent.analysis.alarm_types import ALARM_TYPES
 from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
-from silo_agent.heightmap import HeightMap
-from silo_agent.telemetry.payloads import ALARM_TYPES
+from silo_agent.grid.heightmap import HeightMap
 
 SIGMA_PER_MAD = 1.4826  # standard deviation of a normal distribution per median absolute dev.
 
@@ -359,7 +359,7 @@ def evaluate(
     """Events (`raised` / `cleared`, only on a change) and the state for the next scan.
 
     With `calibration`, the `calibration` alarm follows the calibration_drift detector
-    (silo_agent.drift.drift_step, whose run lengths the state carries): raised while any
+    (silo_agent.analysis.drift.drift_step, whose run lengths the state carries): raised while any
     camera pair's height disagreement or camera's IMU tilt is drifted, cleared when none is.
     """
     detectors = DETECTORS if detectors is None else detectors
@@ -404,7 +404,7 @@ def _calibration_drift(
     events: list[dict[str, Any]],
 ) -> dict[str, Any]:
     """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
-    from silo_agent.drift import DEFAULT_GRAVITY_TOLERANCE_DEG, DriftState, drift_step
+    from silo_agent.analysis.drift import DEFAULT_GRAVITY_TOLERANCE_DEG, DriftState, drift_step
 
     tolerances = inputs.gravity_tolerance_deg or DEFAULT_GRAVITY_TOLERANCE_DEG
     state, changes = drift_step(

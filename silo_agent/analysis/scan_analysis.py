@@ -3,8 +3,8 @@
 YOLO first when a model is configured (its robot boxes are cut out of the cloud before the
 surface is built), then the reconstruction, then the piles of both detectors, with ids carried
 over from the previous scan. This module sits above both `silo_agent.reconstruct` and
-`silo_agent.detect`, which do not import each other's orchestration; its `AnalysisResult`
-carries the reconstruction's `Result` and what detection found on it, so the reconstruction
+`silo_agent.detect`, which do not import each other's orchestration; its `ScanAnalysis`
+carries the reconstruction's `Reconstruction` and what detection found on it, so the reconstruction
 knows nothing of piles and robots.
 """
 
@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING, Any
 from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
 from silo_agent.detect.geometric import Surface, detect_piles, grid_of
-from silo_agent.geometry import points_outside
-from silo_agent.reconstruct import Result, reconstruct
-from silo_agent.reconstruct.volume import base_surface
+from silo_agent.grid.geometry import points_outside
+from silo_agent.grid.volume import base_surface
+from silo_agent.reconstruct import Reconstruction, reconstruct
 from silo_agent.scan import Scan, Site
 
 if TYPE_CHECKING:
@@ -31,10 +31,10 @@ _AFTER_DETECTION = ("registration_residual_m", "registration_residual")
 
 
 @dataclass
-class AnalysisResult:
+class ScanAnalysis:
     """A scan's reconstruction and the piles (and robots) found on it."""
 
-    reconstruction: Result
+    reconstruction: Reconstruction
     piles: list[Pile]  # both detectors', ids carried over from the previous scan
     robots: list[Robot] | None  # None: no YOLO model configured
 
@@ -68,7 +68,7 @@ def analyse(
     site: Site | None = None,
     previous: Sequence[Pile] = (),
     calibration: CalibrationConfig | None = None,
-) -> AnalysisResult:
+) -> ScanAnalysis:
     """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
 
     `calibration` sets how the registration residual is measured; with `refine` on, a bounded
@@ -96,7 +96,7 @@ def analyse(
         result.parameters["refine_notes"] = notes
     found_robots = robots if onnx is not None else None
     if result.heightmap is None:
-        return AnalysisResult(result, [], found_robots)
+        return ScanAnalysis(result, [], found_robots)
     hm = result.heightmap
     base = base_surface(grid_of(hm), hm.heights.astype(float), site.base, site.floor_z)
     surface = Surface.of(hm, base, site.floor_z, detection.background_m)
@@ -107,6 +107,6 @@ def analyse(
         cloud = fused_points(scan.cameras)
         cloud = cloud[points_outside(cloud, [r.disc for r in robots])]
         piles += onnx_piles(found, onnx.pile_classes, cloud, surface, onnx.cluster_radius_m)
-    return AnalysisResult(
+    return ScanAnalysis(
         result, match_ids(previous, piles, detection.match_distance_m), found_robots
     )

@@ -2,7 +2,7 @@
 
 Re-processing an archive pays the imports once instead of once per scan, and a fresh process
 faults every array in for the first time: the second scan of a batch runs faster than the
-first. Each scan goes through `process_dir`; a scan that fails is one line on stderr naming
+first. Each scan goes through `outcome_of`; a scan that fails is one line on stderr naming
 its directory and the others go on. Nothing here imports numpy, scipy or pydantic at module
 level, so `process --help` stays quick.
 """
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
-from silo_agent.exits import CONFIG_ERROR, DATA_ERROR, FAILURE
+from silo_agent.base.exits import CONFIG_ERROR, DATA_ERROR, FAILURE
 
 if TYPE_CHECKING:
     from silo_agent.config import Config
@@ -64,14 +64,14 @@ def scan_dirs(targets: Sequence[Path]) -> list[Path]:
     return found
 
 
-def process_dir(directory: Path, options: Options) -> Processed:
+def outcome_of(directory: Path, options: Options) -> Processed:
     """`scan_service.process_directory` of one scan, its outcome as a line to print; never
     raises for a bad scan."""
+    from silo_agent.base.limits import LimitExceeded
     from silo_agent.config import ConfigError
     from silo_agent.detect import ModelError
-    from silo_agent.limits import LimitExceeded
     from silo_agent.scan import ScanError
-    from silo_agent.scan_service import process_directory
+    from silo_agent.service.scan_path import process_directory
 
     name = str(directory)
     try:
@@ -97,12 +97,12 @@ def _outcomes(dirs: Sequence[Path], options: Options, jobs: int) -> Iterator[Pro
     """Each scan's outcome in the order given, from `jobs` worker processes if more than one."""
     if jobs <= 1 or len(dirs) <= 1:
         for directory in dirs:
-            yield process_dir(directory, options)
+            yield outcome_of(directory, options)
         return
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=min(jobs, len(dirs))) as pool:
-        yield from pool.map(process_dir, dirs, [options] * len(dirs))
+        yield from pool.map(outcome_of, dirs, [options] * len(dirs))
 
 
 class Progress:

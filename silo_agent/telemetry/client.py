@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable, Mapping
 
 from silo_agent import __version__
 from silo_agent.config import Config, MqttConfig, stale_after_s
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.heightmap import HeightMap
 from silo_agent.telemetry import sparkplug
 from silo_agent.telemetry.commands import (
     CommandRejected,
@@ -29,6 +29,7 @@ from silo_agent.telemetry.commands import (
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
 from silo_agent.telemetry.link import KIND_BINARY, KIND_JSON, KIND_SPARKPLUG
 from silo_agent.telemetry.live_command import LiveCommand
+from silo_agent.telemetry.mqtt_session import Identity, NodeState, Session
 from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import (
     CameraState,
@@ -40,7 +41,6 @@ from silo_agent.telemetry.payloads import (
     volume_payload,
 )
 from silo_agent.telemetry.pump import POISON_STRIKES
-from silo_agent.telemetry.session import Identity, NodeState, Session
 from silo_agent.telemetry.transport import Credentials, Transport, read_secret
 
 __all__ = [  # the names callers import from here, wherever they live

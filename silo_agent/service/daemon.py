@@ -20,15 +20,15 @@ from zoneinfo import ZoneInfo
 
 import structlog
 
-from silo_agent.audit import AuditCache
 from silo_agent.config import Config, ConfigError, config_warnings, load_config, stale_after_s
-from silo_agent.heightmap import HeightMap
-from silo_agent.live.agent import LiveControl
-from silo_agent.metrics import Metrics
-from silo_agent.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
-from silo_agent.scan_service import new_scan_id
-from silo_agent.sdnotify import Notifier
-from silo_agent.telemetry.mqtt import CommandRejected, ScanCommand, Telemetry
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.service.live_control import LiveControl
+from silo_agent.service.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
+from silo_agent.service.scan_path import new_scan_id
+from silo_agent.service.sdnotify import Notifier
+from silo_agent.storage.audit import AuditCache
+from silo_agent.telemetry.client import CommandRejected, ScanCommand, Telemetry
+from silo_agent.telemetry.prometheus import Metrics
 
 log = structlog.get_logger(__name__)
 
@@ -248,7 +248,7 @@ class Agent:
 
     def _report(self, running: _Running, error: str) -> None:
         """A scan that ended without a result of its own (deadline, crash)."""
-        from silo_agent.pipeline import failure_summary
+        from silo_agent.service.pipeline import failure_summary
 
         running.reported = True
         log.error("scan failed", scan_id=running.scan_id, reason=error)

@@ -22,7 +22,12 @@ import numpy as np
 import pyrealsense2 as rs
 
 from silo_agent.capture import CaptureError
-from silo_agent.capture.realsense import RealSenseCamera, _configure, _DeviceFault, _rgb
+from silo_agent.capture.realsense import (
+    DeviceFault,
+    RealSenseCamera,
+    configure_depth_sensor,
+    rgb_image,
+)
 from silo_agent.config import Config
 from silo_agent.live.map import DepthFrame
 
@@ -43,8 +48,8 @@ class RealSenseFrameSource:
                         camera._streaming(camera._depth_config())
                     )
                     if cam.source == "realsense":
-                        _configure(profile.get_device().first_depth_sensor(), cam)
-                except (RuntimeError, _DeviceFault) as exc:
+                        configure_depth_sensor(profile.get_device().first_depth_sensor(), cam)
+                except (RuntimeError, DeviceFault) as exc:
                     raise CaptureError(f"camera {cam.serial}: {exc}") from None
                 chain = [f for f in camera._filters() if not f.is_temporal_filter()]
                 align = rs.align(rs.stream.depth) if cam.color else None
@@ -82,7 +87,7 @@ class RealSenseFrameSource:
             rgb = None
             if align is not None:
                 colour = align.process(frameset).get_color_frame()
-                rgb = _rgb(colour) if colour else None
+                rgb = rgb_image(colour) if colour else None
             for step in chain:
                 depth = step.process(depth)
             intr = depth.get_profile().as_video_stream_profile().get_intrinsics()

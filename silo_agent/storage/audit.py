@@ -32,9 +32,9 @@ import numpy as np
 import structlog
 
 from silo_agent import __version__
-from silo_agent.atomic import publish_directory, write_atomic
+from silo_agent.base.atomic import publish_directory, write_atomic
 from silo_agent.config import AuditConfig
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.heightmap import HeightMap
 from silo_agent.scan import MANIFEST, Scan, ScanError, manifest_of, write_ply
 
 log = structlog.get_logger(__name__)

@@ -2,7 +2,8 @@
 (reconstruct/residual.py) and the cameras' IMU gravity against their extrinsics become
 raise/clear events (`drift_step`: pure, previous state in, new state and events out) for the
 alarm publisher to forward. Recalibrating is the offline tool's job (`silo_agent.calibrate`),
-which the daemon does not import."""
+which the daemon does not import. The gravity readings come from the scan
+(`scan.gravity_angles`)."""
 
 from __future__ import annotations
 
@@ -10,36 +11,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import numpy as np
-
 from silo_agent.config import CalibrationConfig, CameraConfig, Config
-from silo_agent.geometry import gravity_angle_deg
 from silo_agent.reconstruct.residual import PairResidual
-from silo_agent.scan import CameraCloud
+from silo_agent.scan import CameraCloud, gravity_angles
 
 # a camera without its own `gravity_tolerance_deg` gets the config's default
 DEFAULT_GRAVITY_TOLERANCE_DEG: float = CameraConfig.model_fields["gravity_tolerance_deg"].default
-
-
-def gravity_of(camera: CameraCloud) -> np.ndarray | None:
-    """The camera's IMU gravity vector (`gravity` in scan.json: down, camera axes), if any."""
-    value = camera.extra.get("gravity")
-    if value is None:
-        return None
-    vector = np.asarray(value, dtype=float)
-    if vector.shape != (3,) or not np.all(np.isfinite(vector)) or np.linalg.norm(vector) < 1e-6:
-        return None
-    return vector
-
-
-def gravity_angles(cameras: Sequence[CameraCloud]) -> dict[str, float]:
-    """Per camera: degrees between its measured gravity and the vertical its extrinsic claims."""
-    out = {}
-    for camera in cameras:
-        gravity = gravity_of(camera)
-        if gravity is not None:
-            out[camera.serial] = gravity_angle_deg(gravity, camera.extrinsic)
-    return out
 
 
 @dataclass(frozen=True)
@@ -94,7 +71,7 @@ def drift_step(
     """One scan of the `calibration_drift` detector. Pure.
 
     - `residuals`: the scan's `registration_residual_m` (pair key -> median metres, or the
-      `PairResidual`s of `Result.registration`);
+      `PairResidual`s of `Reconstruction.registration`);
     - `gravity_deg`: per camera, the angle between its IMU gravity and its extrinsic's vertical
       (`gravity_angles(scan.cameras)`, or `gravity_angle_deg` in scan.json);
     - `gravity_tolerance_deg`: per camera (its `[[cameras]] gravity_tolerance_deg`) or one value.
@@ -178,7 +155,7 @@ class DriftMonitor:
     def update(
         self, residuals: Mapping[str, PairResidual | float], cameras: Sequence[CameraCloud] = ()
     ) -> list[DriftEvent]:
-        """Feed one scan (`Result.registration` and the scan's cameras); the events it causes."""
+        """Feed one scan (`Reconstruction.registration` and the scan's cameras): its events."""
         self.state, events = drift_step(
             self.state,
             residuals,

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from silo_agent.reconstruct.grid import Grid
-from silo_agent.reconstruct.smooth import masked_smooth
+from silo_agent.grid.grid import Grid
+from silo_agent.grid.smooth import masked_smooth
 
 DENOISE_SCALE_M = 0.20  # smoothing under the base clip (integrate_denoised, denoised_columns)
 

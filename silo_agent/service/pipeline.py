@@ -18,29 +18,28 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
-from silo_agent.alarms import AlarmState, Inputs, clear_switched_off, evaluate
-from silo_agent.atomic import write_atomic
-from silo_agent.audit import AuditCache, dump_json, is_disk_full
+from silo_agent.analysis.alarms import AlarmState, Inputs, clear_switched_off, evaluate
+from silo_agent.base.atomic import write_atomic
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
-from silo_agent.drift import gravity_angles
-from silo_agent.metrics import Metrics
-from silo_agent.reconstruct import Result
-from silo_agent.scan import Scan, ScanError
-from silo_agent.scan_service import (
+from silo_agent.reconstruct import Reconstruction
+from silo_agent.scan import Scan, ScanError, gravity_angles
+from silo_agent.service.scan_path import (
     CONFIG_KEY,
-    analyse_scan,
-    analysis_of,
+    analyse_with,
     keep_result,
     new_scan,
     previous_piles,
+    settings_of,
     summarise,
 )
-from silo_agent.telemetry.mqtt import Telemetry
+from silo_agent.storage.audit import AuditCache, dump_json, is_disk_full
+from silo_agent.telemetry.client import Telemetry
+from silo_agent.telemetry.prometheus import Metrics
 from silo_agent.telemetry.sparkplug import iso_to_ms
 
 if TYPE_CHECKING:
-    from silo_agent.analysis import AnalysisResult
+    from silo_agent.analysis.scan_analysis import ScanAnalysis
     from silo_agent.detect import Pile
 
 log = structlog.get_logger(__name__)
@@ -197,7 +196,7 @@ class Pipeline:
 
         previous = previous_piles(self.cache, scan_id)
         try:
-            analysed = analyse_scan(scan, analysis_of(scan), previous)
+            analysed = analyse_with(scan, settings_of(scan), previous)
         except Exception as exc:  # a bug or a bad model must not stop the agent
             log.exception("processing failed", scan_id=scan_id)
             return self._failed(
@@ -280,7 +279,7 @@ class Pipeline:
         return None, True
 
     def _keep_result(
-        self, directory: Path, summary: dict[str, Any], result: AnalysisResult, previous: list[Pile]
+        self, directory: Path, summary: dict[str, Any], result: ScanAnalysis, previous: list[Pile]
     ) -> bool:
         """result.json, the height map and inputs.json into the scan's directory; on a full
         disk evict older scans and retry once. False if they could not all be kept."""
@@ -334,7 +333,7 @@ class Pipeline:
         return Outcome(scan_id, "failed", reason, summary, None, events)
 
     def _publish(
-        self, summary: dict[str, Any], result: Result, events: list[dict[str, Any]]
+        self, summary: dict[str, Any], result: Reconstruction, events: list[dict[str, Any]]
     ) -> None:
         self.telemetry.publish_result(summary, result.heightmap)
         for event in events:

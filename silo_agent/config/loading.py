@@ -1,0 +1,156 @@
+"""Reading a TOML file into a `Config`: strict parsing, one line per problem naming the key,
+and the environment checks `run` and `check-config` make."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import tomllib
+from pathlib import Path
+
+from pydantic import (
+    ValidationError,
+)
+
+from silo_agent.config.base import ConfigError
+from silo_agent.config.root import Config
+
+
+def describe_validation_error(exc: ValidationError, source: str) -> str:
+    """One line per problem: `source: key.path: what was expected`."""
+    lines = []
+    for error in exc.errors():
+        path = ".".join(str(p) for p in error["loc"]) or "(top level)"
+        if error["type"] == "config_key":  # a cross-check raised at the top, naming its key
+            path = error["ctx"]["key"]
+        message = error["msg"].removeprefix("Value error, ")
+        if error["type"] == "extra_forbidden":
+            message = "unknown key"
+        elif error["type"] == "missing":
+            message = "required key is missing"
+        lines.append(f"{source}: {path}: {message}")
+    return "\n".join(lines)
+
+
+def _toml_value(value: object) -> object:
+    """A TOML date or time in the JSON handed to the strict validator: an object, which no
+    key of the config accepts, so the error names the key."""
+    return {"toml date/time": str(value)}
+
+
+def parse_config(data: dict, source: str) -> Config:
+    """Validate a parsed TOML document, strictly (no `true` or `"30"` for a number); `source`
+    names it in errors. Validated as JSON, where strict mode still takes a string for a path
+    and an array for a tuple, as TOML writes them."""
+    try:
+        document = json.dumps(data, default=_toml_value)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    try:
+        return Config.model_validate_json(document, strict=True)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, source)) from None
+
+
+def _writable_directory_problem(directory: Path) -> str | None:
+    """Why the agent could not create and write `directory`, or None. The nearest existing
+    ancestor must be a directory the agent can create entries in (tried, and undone)."""
+    existing = directory
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a directory"
+    try:
+        tempfile.TemporaryDirectory(prefix=".silo-agent-check.", dir=existing).cleanup()
+    except OSError as exc:
+        return f"cannot create files in {existing}: {exc.strerror or exc}"
+    return None
+
+
+def _readable_file_problem(path: Path) -> str | None:
+    if not path.exists():
+        return f"{path} does not exist"
+    if not path.is_file():  # checked before opening: a FIFO would block the open
+        return f"{path} is not a regular file"
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        return f"cannot read {path}: {exc.strerror or exc}"
+    return None
+
+
+def environment_problems(config: Config) -> list[str]:
+    """`key: problem` for what the config points at and the agent could not use: directories
+    it writes, files it reads. Checked at start and by check-config, not on every parse."""
+    problems = []
+    for key, directory in (
+        ("audit.directory", config.audit.directory),
+        ("mqtt.outbox_path", config.mqtt.outbox_path.parent),
+    ):
+        problem = _writable_directory_problem(Path(directory))
+        if problem:
+            problems.append(f"{key}: {problem}")
+    outbox = config.mqtt.outbox_path
+    if outbox.exists() and not outbox.is_file():
+        problems.append(f"mqtt.outbox_path: {outbox} exists and is not a regular file")
+    files = {"mqtt.password_file": config.mqtt.password_file}
+    if config.mqtt.tls is not None:
+        tls = config.mqtt.tls
+        files.update(
+            {
+                "mqtt.tls.ca_file": tls.ca_file,
+                "mqtt.tls.cert_file": tls.cert_file,
+                "mqtt.tls.key_file": tls.key_file,
+                "mqtt.tls.key_password_file": tls.key_password_file,
+            }
+        )
+    for key, path in files.items():
+        problem = _readable_file_problem(path) if path is not None else None
+        if problem:
+            problems.append(f"{key}: {problem}")
+    return problems
+
+
+def config_warnings(config: Config) -> list[str]:
+    """Settings that are valid but probably not meant: a cron line that never fires."""
+    warnings = []
+    if config.schedule.cron is not None:
+        from datetime import UTC, datetime
+
+        from apscheduler.triggers.cron import CronTrigger
+
+        trigger = CronTrigger.from_crontab(config.schedule.cron, timezone=config.silo.timezone)
+        if trigger.get_next_fire_time(None, datetime.now(UTC)) is None:
+            warnings.append(
+                f"schedule.cron: {config.schedule.cron!r} never fires "
+                "(no such date); only scan_at_start, interval_s and requests scan"
+            )
+    return warnings
+
+
+def load_config(path: str | Path, *, service: bool = False) -> Config:
+    """Read and validate a TOML config file. `service`: also what the daemon will write and
+    read (`environment_problems`), for `run`, its reloads and `check-config`; offline commands
+    such as `process --config` need none of it."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset "
+            f"{exc.start} ({exc.reason})"
+        ) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    config = parse_config(data, str(path))
+    problems = environment_problems(config) if service else []
+    if problems:
+        raise ConfigError("\n".join(f"{path}: {problem}" for problem in problems))
+    return config

@@ -1,0 +1,1 @@
+"""What the agent keeps on disk: the audit cache of scans and their results."""
