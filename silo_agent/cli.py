@@ -23,6 +23,7 @@ from silo_agent.base.choices import (
     GRAINS,
     LAYOUTS,
     METHODS,
+    SCENE_NAMES,
 )
 from silo_agent.base.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.base.exits import DATA_ERROR as EX_DATAERR
@@ -339,6 +340,16 @@ def _calib_error(text: str) -> tuple[float, float]:
     return degrees, metres
 
 
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError("want WIDTHxHEIGHT, e.g. 1280x720") from None
+    if not (16 <= width <= 1280 and 16 <= height <= 800):
+        raise argparse.ArgumentTypeError("want 16-1280 x 16-800 pixels")
+    return width, height
+
+
 def _positive(text: str) -> int:
     try:
         value = int(text)
@@ -366,6 +377,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             layout=args.layout,
             color=args.color,
             rig=rig,
+            resolution=args.resolution,
         )
     except ValueError as exc:  # a layout that does not fit the scene
         return _fail(str(exc), USAGE)
@@ -381,7 +393,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.record is not None:
         from silo_agent.capture.sim_recording import record_views
 
-        views = plan_views(scene, args.views, args.seed, args.calib_error, args.layout)
+        views = plan_views(
+            scene, args.views, args.seed, args.calib_error, args.layout, args.resolution
+        )
         for path in record_views(
             rig, views, args.seed, args.record, args.record_frames, args.color
         ):
@@ -630,8 +644,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
     p.add_argument(
         "--scene",
-        required=True,  # sim.SCENES, not imported: no numpy at start-up
-        choices=["cone", "piles", "ridge", "crater", "full", "flat", "empty", "bay-cone"],
+        required=True,
+        choices=SCENE_NAMES,
     )
     p.add_argument(
         "--views",
@@ -660,7 +674,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--layout",
         choices=LAYOUTS,
-        help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)",
+        help="paper: 5 m square, 1 m high; wall: high on the walls; eave: under a round "
+        "bin's eave (default per scene)",
+    )
+    p.add_argument(
+        "--resolution",
+        type=_resolution,
+        default=(848, 480),
+        metavar="WxH",
+        help="depth image size: 848x480 (default) or the D455's full 1280x720",
     )
     p.add_argument("--color", action="store_true", help="colour the points (normal shading)")
     p.add_argument(

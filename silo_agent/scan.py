@@ -28,6 +28,7 @@ from silo_agent.base.limits import (
     MAX_SCAN_POINTS,
 )
 from silo_agent.config import describe_validation_error
+from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.geometry import check_polygon, gravity_angle_deg, rigid_transform_problem
 
 FORMAT = "silo-scan/1"
@@ -48,6 +49,7 @@ class Site:
     ceiling_z: float | None = None
     base: Literal["floor", "boundary"] = "floor"
     bulk_density_t_m3: float | None = None
+    bin: BinShape | None = None  # the known wall, eave and bottom (silo-scan/2)
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"region": self.region.tolist(), "floor_z": self.floor_z}
@@ -56,6 +58,8 @@ class Site:
         out["base"] = self.base
         if self.bulk_density_t_m3 is not None:
             out["bulk_density_t_m3"] = self.bulk_density_t_m3
+        if self.bin is not None:
+            out["bin"] = self.bin.to_json()
         return out
 
 

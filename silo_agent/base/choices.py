@@ -6,7 +6,7 @@ from typing import Literal, get_args
 
 Method = Literal["bicm", "rectangle", "alpha", "poisson", "hull"]
 Grain = Literal["wheat", "corn", "soybeans", "rice"]
-Layout = Literal["paper", "wall"]
+Layout = Literal["paper", "wall", "eave"]
 
 METHODS: tuple[str, ...] = get_args(Method)
 GRAINS: tuple[str, ...] = get_args(Grain)
@@ -20,3 +20,21 @@ DEFAULT_LAYOUT: Layout = "paper"
 # The simulator's camera positions (the paper's A1-A8: midpoints A1 A3 A5 A7, corners A2 A4 A6
 # A8, counter-clockwise from the middle of the -y side); a sim camera's `view` names one.
 VIEW_NAMES: tuple[str, ...] = ("A1", "A2", "A3", "A4", "A5", "A6", "A7", "A8")
+
+# The simulator's scene library (sim/scenes.py builds each); the bin scenes are round bins.
+SCENE_NAMES: tuple[str, ...] = (
+    "cone",
+    "piles",
+    "ridge",
+    "crater",
+    "full",
+    "flat",
+    "empty",
+    "bay-cone",
+    "bin-heap",
+    "bin-crater",
+    "bin-side",
+    "hopper-heap",
+    "hopper-low",
+    "bin-18",
+)

@@ -62,10 +62,12 @@ class NoiseModel:
     grazing_end_deg: float = 88.0  # ... to 1 here (angle between ray and surface normal)
     hole_fraction: float = 0.01  # pixels lost in blobs
     speckle_fraction: float = 0.002  # isolated lost pixels
+    surface_factor: float = 1.0  # real surfaces: 3-5x the ideal target's error at 2.5-5x
 
     def rms_m(self, depth_m: np.ndarray | float, focal_px: float) -> np.ndarray | float:
         """The D455 depth RMS error at a depth."""
-        return np.square(depth_m) * self.subpixel / (focal_px * self.baseline_m)
+        ideal = np.square(depth_m) * self.subpixel / (focal_px * self.baseline_m)
+        return self.surface_factor * ideal
 
 
 @dataclass

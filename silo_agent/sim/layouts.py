@@ -1,4 +1,6 @@
-"""Camera positions: the paper's A1-A8 and a wall-mounted layout; calibration-error injection.
+"""Camera positions: the paper's A1-A8, a wall-mounted layout and a round bin's eave cameras
+(A1-A8 at the same eight bearings, just under the eave, looking down and inward past the
+centre); calibration-error injection.
 
 A1-A8 go counter-clockwise around a square seen from above, A1 at the middle of the -y side
 (then A3 at +x, A5 at +y, A7 at -x; the even ones are corners). This reproduces the relative
@@ -12,7 +14,7 @@ import numpy as np
 from silo_agent.base.choices import VIEW_NAMES
 from silo_agent.sim.scenes import Scene
 
-LAYOUTS = ("paper", "wall")
+LAYOUTS = ("paper", "wall", "eave")
 VIEWS: dict[str, tuple[int, int]] = dict(
     zip(
         VIEW_NAMES,
@@ -32,6 +34,8 @@ VIEWS: dict[str, tuple[int, int]] = dict(
 PAPER_SQUARE_M = 5.0
 PAPER_CAMERA_Z = 1.0
 WALL_INSET_M = 0.05  # a wall camera's lens in front of the wall
+EAVE_INSET_M = 0.3  # an eave camera's lens inside a round bin's wall
+EAVE_AIM = 0.2  # eave cameras aim this fraction of the radius past the centre
 
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -63,6 +67,14 @@ def view_pose(scene: Scene, view: str, layout: str | None = None) -> np.ndarray:
     elif layout == "wall":
         xy = offset * (scene.wall_half_m - WALL_INSET_M)
         z = scene.wall_camera_z
+    elif layout == "eave":
+        if scene.bin is None:
+            raise ValueError(f"the 'eave' layout needs a round bin; {scene.name!r} is not one")
+        centre, radius = np.asarray(scene.bin.centre), scene.bin.radius_m
+        direction = offset / np.linalg.norm(offset)
+        xy = centre + direction * (radius - EAVE_INSET_M)
+        z = scene.wall_camera_z
+        target = np.append(centre - direction * EAVE_AIM * radius, target[2])
     else:
         raise ValueError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
     surface = float(scene.height(np.array(xy[0]), np.array(xy[1])))

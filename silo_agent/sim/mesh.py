@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from silo_agent.grid.bin_shape import BinShape
 from silo_agent.sim.scenes import Box, Scene
 
 GRAIN, CLUTTER = 0, 1  # material of a mesh: shading colour of the colour image
@@ -72,9 +73,54 @@ def box_mesh(box: Box) -> Mesh:
     return Mesh(vertices, triangles, CLUTTER)
 
 
-def build_world(scene: Scene, step: float = 0.01) -> World:
-    meshes = [height_field_mesh(scene, step)]
+WALL_SIDES = 720  # a round wall's mesh: the chords sag 10 um per metre of radius
+WALL_FOOT_M = 0.3  # the wall mesh starts this far under the bottom at the wall
+
+
+def wall_mesh(shape: BinShape, sides: int = WALL_SIDES) -> Mesh:
+    """The bin's wall, from under its foot to the eave: a band of quads around the wall."""
+    theta = np.arange(sides) * (2 * np.pi / sides)
+    cx, cy = shape.centre
+    x, y = cx + shape.radius_m * np.cos(theta), cy + shape.radius_m * np.sin(theta)
+    foot = float(np.min(shape.bottom(x, y))) - WALL_FOOT_M
+    ring = np.column_stack([x, y])
+    vertices = np.concatenate(
+        [
+            np.column_stack([ring, np.full(sides, foot)]),
+            np.column_stack([ring, np.full(sides, shape.eave_z)]),
+        ]
+    )
+    i = np.arange(sides, dtype=np.uint32)
+    j = (i + 1) % sides
+    triangles = np.concatenate(
+        [np.stack([i, j, j + sides], 1), np.stack([i, j + sides, i + sides], 1)]
+    ).astype(np.uint32)
+    return Mesh(vertices.astype(np.float32), triangles, CLUTTER)
+
+
+def roof_mesh(shape: BinShape, sides: int = WALL_SIDES) -> Mesh:
+    """The conical roof from the eave to the peak over the centre."""
+    theta = np.arange(sides) * (2 * np.pi / sides)
+    cx, cy = shape.centre
+    rim = np.column_stack(
+        [
+            cx + shape.radius_m * np.cos(theta),
+            cy + shape.radius_m * np.sin(theta),
+            np.full(sides, shape.eave_z),
+        ]
+    )
+    vertices = np.concatenate([rim, [[cx, cy, shape.roof_peak_z]]])
+    i = np.arange(sides, dtype=np.uint32)
+    triangles = np.stack([i, (i + 1) % sides, np.full(sides, sides, np.uint32)], 1)
+    return Mesh(vertices.astype(np.float32), triangles.astype(np.uint32), CLUTTER)
+
+
+def build_world(scene: Scene, step: float | None = None) -> World:
+    """The scene's meshes; `step` defaults to the scene's own height-field step."""
+    meshes = [height_field_mesh(scene, step or scene.mesh_step_m)]
     if scene.outer_z is not None:
         meshes.append(ring_mesh(scene.extent, scene.outer_z, reach=30.0))
+    if scene.bin is not None:
+        meshes += [wall_mesh(scene.bin), roof_mesh(scene.bin)]
     meshes.extend(box_mesh(box) for box in scene.clutter)
     return World(tuple(meshes))

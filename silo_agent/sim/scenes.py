@@ -14,13 +14,15 @@ from typing import Any
 
 import numpy as np
 
+from silo_agent.base.choices import SCENE_NAMES
+from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.geometry import cell_fractions
 from silo_agent.scan import Site
 from silo_agent.sim.grains import Grain, grain
 
 HeightField = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
-SCENES = ("cone", "piles", "ridge", "crater", "full", "flat", "empty", "bay-cone")
+SCENES = SCENE_NAMES
 PAPER_PILE_M3 = 1.68  # the paper's reference pile
 
 
@@ -66,6 +68,10 @@ class Scene:
     clutter: tuple[Box, ...] = ()
     piles: tuple[PileTruth, ...] = ()
     params: dict[str, Any] = field(default_factory=dict)  # shape parameters, for tests and docs
+    bin: BinShape | None = None  # a bin's wall, roof and bottom, built into the world
+    surface_factor: float = 1.0  # depth noise over the D455's ideal-target figure
+    max_depth_m: float = 6.0  # farthest depth the camera reports
+    mesh_step_m: float = 0.01  # height-field mesh step
 
     def truth(self) -> dict[str, Any]:
         """What `scan.json` carries as `truth`."""
@@ -77,7 +83,27 @@ class Scene:
         }
         if self.piles:
             out["piles"] = [p.to_json() for p in self.piles]
+        if self.bin is not None:
+            out |= self.bin_truth(self.volume_m3)
         return out
+
+    def bin_truth(self, volume_m3: float) -> dict[str, Any]:
+        """A bin's truth beside the volume: the highest and lowest grain, fill and headspace."""
+        assert self.bin is not None
+        top, low, mean = (
+            self.params["grain_max_z"],
+            self.params["grain_min_z"],
+            self.params["grain_mean_z"],
+        )
+        return {
+            "capacity_m3": self.params["capacity_m3"],
+            "fill_ratio": volume_m3 / self.params["capacity_m3"],
+            "level_max_m": top - self.site.floor_z,
+            "level_min_m": low - self.site.floor_z,
+            "level_mean_m": mean - self.site.floor_z,
+            "headspace_m": self.bin.reference_z - top,
+            "headspace_mean_m": self.bin.reference_z - mean,
+        }
 
 
 # ---------------------------------------------------------------- shapes
@@ -431,6 +457,193 @@ def bay_cone_scene(g: Grain) -> Scene:
     )
 
 
+# ---------------------------------------------------------------- round bins
+
+# A round steel bin: wall and conical roof (30 deg) in the world, eave cameras looking down and
+# inward (layout "eave"), D455 noise at 2.5 times the ideal-target figure (~2 % at 4 m, the
+# datasheet's bound for real surfaces), depth reported out to 20 m. The region is the wall.
+BIN_SURFACE_FACTOR = 2.5
+BIN_MAX_DEPTH_M = 20.0
+BIN_RADIAL_SAMPLES = 400_000  # midpoints of the radial truth integral (error ~1e-9 relative)
+
+Profile = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def heap_surface(level: float, radius: float, slope: float) -> Profile:
+    """Centre-fill heap: grain `level` at the wall, a cone at the angle of repose over it."""
+    return lambda x, y: level + np.maximum(0.0, slope * (radius - np.hypot(x, y)))
+
+
+def crater_surface(level: float, radius: float, slope: float) -> Profile:
+    """Draw-down crater: an inverted cone at the angle of repose over the centre outlet."""
+    return lambda x, y: np.minimum(level, level - slope * (radius - np.hypot(x, y)))
+
+
+def side_draw_surface(level: float, radius: float, slope: float, outlet: np.ndarray) -> Profile:
+    """Side-draw: an inverted half-cone at the angle of repose against the wall outlet."""
+    return lambda x, y: np.minimum(
+        level, level - slope * (radius - np.hypot(x - outlet[0], y - outlet[1]))
+    )
+
+
+def radial_volume(shape: BinShape, surface: Profile) -> float:
+    """Exact-to-rounding grain volume of an axisymmetric surface over the bin's bottom:
+    integral of 2 pi r max(surface - bottom, 0) dr, midpoints of 400,000 rings."""
+    r = (np.arange(BIN_RADIAL_SAMPLES) + 0.5) * (shape.radius_m / BIN_RADIAL_SAMPLES)
+    zero = np.zeros_like(r)
+    column = np.maximum(surface(r, zero) - shape.bottom(r, zero), 0.0)
+    return float(np.sum(2 * np.pi * r * column) * shape.radius_m / BIN_RADIAL_SAMPLES)
+
+
+def side_draw_volume(shape: BinShape, level: float, radius: float, slope: float) -> float:
+    """A flat-bottom bin at `level` less the half-cone a wall outlet draws: around the outlet,
+    the ring at distance d lies inside the wall over an angle 2 acos(d / 2R)."""
+    big = shape.radius_m
+    d = (np.arange(BIN_RADIAL_SAMPLES) + 0.5) * (radius / BIN_RADIAL_SAMPLES)
+    drop = np.minimum(slope * (radius - d), level - shape.floor_z)
+    arc = 2 * np.arccos(np.clip(d / (2 * big), -1, 1))
+    removed = float(np.sum(drop * arc * d) * radius / BIN_RADIAL_SAMPLES)
+    return np.pi * big * big * (level - shape.floor_z) - removed
+
+
+def radial_extremes(
+    shape: BinShape, surface: Profile, samples: int = 20_001
+) -> tuple[float, float, float]:
+    """Highest, lowest and area-weighted mean height of the grain surface where grain stands
+    (bare floor or hopper steel is not grain)."""
+    r = np.linspace(0.0, shape.radius_m, samples)
+    zero = np.zeros_like(r)
+    z = surface(r, zero)
+    grain = z > shape.bottom(r, zero)
+    weight = r * np.gradient(r) * grain
+    top, low = float(z[grain].max()), float(z[grain].min())
+    return top, low, float(np.sum(z * weight) / np.sum(weight))
+
+
+def capacity_m3(shape: BinShape) -> float:
+    """Volume from the bottom (hopper included) up to the eave, inside the wall."""
+    return np.pi * shape.radius_m**2 * (shape.eave_z - shape.floor_z) + shape.hopper_volume_m3()
+
+
+def _bin_scene(
+    name: str,
+    g: Grain,
+    shape: BinShape,
+    surface: Profile,
+    volume_m3: float,
+    extremes: tuple[float, float, float],
+    params: dict[str, Any],
+) -> Scene:
+    big = shape.radius_m
+    reach = big + 0.2
+    cx, cy = shape.centre
+    top, low, mean = extremes
+    site = Site(
+        region=shape.wall_polygon(),
+        floor_z=shape.floor_z,
+        ceiling_z=None,
+        bulk_density_t_m3=g.density_t_m3,
+        bin=shape,
+    )
+
+    def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.maximum(surface(x - cx, y - cy), shape.bottom(x, y))
+
+    return Scene(
+        name=name,
+        grain=g,
+        site=site,
+        height=height,
+        extent=(cx - reach, cx + reach, cy - reach, cy + reach),
+        outer_z=None,
+        volume_m3=volume_m3,
+        target=(cx, cy, (top + low) / 2),
+        layout="eave",
+        wall_half_m=big,
+        wall_camera_z=shape.eave_z - EAVE_DROP_M,
+        params=params
+        | {
+            "diameter_m": shape.diameter_m,
+            "eave_z": shape.eave_z,
+            "capacity_m3": capacity_m3(shape),
+            "grain_max_z": top,
+            "grain_min_z": low,
+            "grain_mean_z": mean,
+        },
+        bin=shape,
+        surface_factor=BIN_SURFACE_FACTOR,
+        max_depth_m=BIN_MAX_DEPTH_M,
+        mesh_step_m=max(0.01, 2 * big / 500),
+    )
+
+
+EAVE_DROP_M = 0.3  # eave cameras hang this far under the eave
+
+
+def bin_scene(
+    g: Grain,
+    *,
+    name: str = "bin",
+    diameter_m: float = 10.0,
+    eave_m: float = 7.0,
+    surface: str = "heap",
+    level_m: float = 1.2,
+    feature_radius_m: float = 3.0,
+    hopper_angle_deg: float | None = None,
+    outlet_diameter_m: float = 0.4,
+    side_outlet_deg: float = 0.0,
+) -> Scene:
+    """A round bin of `diameter_m` with the eave `eave_m` above the floor plane (z = 0).
+
+    `surface`: "heap" (grain at `level_m` by the wall, a centre-fill cone of `feature_radius_m`
+    at the angle of repose on it), "crater" (grain at `level_m`, a draw-down cone of that
+    radius over the centre outlet), "side" (a half-cone drawn at the wall at
+    `side_outlet_deg`, flat floor only) or "level". A `hopper_angle_deg` puts a conical hopper
+    (that slope from the horizontal, down to an outlet of `outlet_diameter_m`) under the floor
+    plane; `level_m` may then be negative: the grain stands inside the hopper.
+    """
+    radius = diameter_m / 2
+    if hopper_angle_deg is None:
+        shape = BinShape(floor_z=0.0, eave_z=eave_m, diameter_m=diameter_m)
+    else:
+        depth = (radius - outlet_diameter_m / 2) * float(np.tan(np.radians(hopper_angle_deg)))
+        shape = BinShape(
+            floor_z=0.0,
+            eave_z=eave_m,
+            diameter_m=diameter_m,
+            floor="hopper",
+            hopper_depth_m=depth,
+            outlet_diameter_m=outlet_diameter_m,
+        )
+    slope = g.slope
+    params: dict[str, Any] = {"surface": surface, "level": level_m, "radius": feature_radius_m}
+    if surface == "side":
+        if shape.floor != "flat":
+            raise ValueError("the side-draw scene has a flat floor")
+        angle = np.radians(side_outlet_deg)
+        outlet = radius * np.array([np.cos(angle), np.sin(angle)])
+        profile = side_draw_surface(level_m, feature_radius_m, slope, outlet)
+        volume = side_draw_volume(shape, level_m, feature_radius_m, slope)
+        bottom = max(level_m - slope * feature_radius_m, shape.floor_z)
+        # the mean over the disc, from the volume: the floor is flat and fully covered
+        extremes = (level_m, bottom, shape.floor_z + volume / (np.pi * radius**2))
+        params["outlet"] = tuple(outlet)
+    else:
+        if surface == "heap":
+            profile = heap_surface(level_m, feature_radius_m, slope)
+        elif surface == "crater":
+            profile = crater_surface(level_m, feature_radius_m, slope)
+        elif surface == "level":
+            profile = heap_surface(level_m, 0.0, slope)
+        else:
+            raise ValueError(f"unknown bin surface {surface!r}")
+        volume = radial_volume(shape, profile)
+        extremes = radial_extremes(shape, profile)
+    if hopper_angle_deg is not None:
+        params |= {"hopper_angle_deg": hopper_angle_deg, "hopper_depth_m": shape.hopper_depth_m}
+    return _bin_scene(name, g, shape, profile, volume, extremes, params)
+
+
 _BUILDERS: dict[str, Callable[[Grain], Scene]] = {
     "cone": cone_scene,
     "piles": piles_scene,
@@ -440,6 +653,39 @@ _BUILDERS: dict[str, Callable[[Grain], Scene]] = {
     "flat": flat_scene,
     "empty": empty_scene,
     "bay-cone": bay_cone_scene,
+    # the issue's 10 m bin, walls 7 m: grain 0.9-2.7 m
+    "bin-heap": lambda g: bin_scene(g, name="bin-heap", level_m=1.2, feature_radius_m=3.0),
+    "bin-crater": lambda g: bin_scene(
+        g, name="bin-crater", surface="crater", level_m=2.4, feature_radius_m=3.0
+    ),
+    "bin-side": lambda g: bin_scene(
+        g, name="bin-side", surface="side", level_m=2.0, feature_radius_m=4.0
+    ),
+    # an 8 m hopper bin (45 deg cone, 0.4 m outlet, 3.8 m deep), eave 6 m above the floor plane
+    "hopper-heap": lambda g: bin_scene(
+        g,
+        name="hopper-heap",
+        diameter_m=8.0,
+        eave_m=6.0,
+        level_m=1.0,
+        feature_radius_m=2.5,
+        hopper_angle_deg=45.0,
+    ),
+    # the same bin drawn down: a crater inside the hopper, the cone's steel bare above it
+    "hopper-low": lambda g: bin_scene(
+        g,
+        name="hopper-low",
+        diameter_m=8.0,
+        eave_m=6.0,
+        surface="crater",
+        level_m=-2.6 + g.slope * 3.0,
+        feature_radius_m=3.0,
+        hopper_angle_deg=45.0,
+    ),
+    # a larger bin: 18 m across, eave 12 m, a 3.5 m deep fill with a heap
+    "bin-18": lambda g: bin_scene(
+        g, name="bin-18", diameter_m=18.0, eave_m=12.0, level_m=3.5, feature_radius_m=6.0
+    ),
 }
 
 

@@ -81,10 +81,14 @@ class SimRig:
     """A scene's world, built once (the costly part), rendered from any camera."""
 
     def __init__(
-        self, scene: Scene, mesh_step: float = 0.01, noise: NoiseModel | None = None
+        self, scene: Scene, mesh_step: float | None = None, noise: NoiseModel | None = None
     ) -> None:
+        """`mesh_step` and `noise` default to the scene's (its height-field step; the D455
+        model at the scene's surface factor and depth range)."""
         self.scene = scene
-        self.noise = noise or NoiseModel()
+        self.noise = noise or NoiseModel(
+            surface_factor=scene.surface_factor, max_depth_m=scene.max_depth_m
+        )
         self.raycaster = Raycaster(build_world(scene, mesh_step))
 
     def frames(self, view: SimView, seed: int, count: int = 1, color: bool = False) -> list[Frame]:
@@ -116,9 +120,12 @@ def plan_views(
     seed: int,
     calib_error: tuple[float, float] = (0.0, 0.0),
     layout: str | None = None,
+    resolution: tuple[int, int] = (848, 480),
 ) -> list[SimView]:
+    width, height = resolution
     return [
-        plan_view(v, serial_for(v), view_pose(scene, v, layout), seed, calib_error) for v in views
+        plan_view(v, serial_for(v), view_pose(scene, v, layout), seed, calib_error, width, height)
+        for v in views
     ]
 
 
@@ -133,8 +140,10 @@ def simulate(
     color: bool = False,
     rig: SimRig | None = None,
     captured_at: datetime | None = None,
+    resolution: tuple[int, int] = (848, 480),
 ) -> Scan:
-    """A silo-scan of `scene` from `views`, with `extra["truth"]` the scene's exact volume."""
+    """A silo-scan of `scene` from `views`, with `extra["truth"]` the scene's exact volume;
+    `resolution` is the depth image's (width, height): 848x480 or the D455's full 1280x720."""
     if isinstance(scene, str):
         scene = make_scene(scene)
     if not views:
@@ -143,7 +152,7 @@ def simulate(
         rig = SimRig(scene)
     elif rig.scene is not scene:
         raise ValueError(f"the rig renders scene {rig.scene.name!r}, not {scene.name!r}")
-    planned = plan_views(scene, views, seed, calib_error, layout)
+    planned = plan_views(scene, views, seed, calib_error, layout, resolution)
     when = (captured_at or datetime.now(UTC)).strftime("%Y-%m-%dT%H:%M:%SZ")
     truth = scene.truth() | {
         "seed": seed,
