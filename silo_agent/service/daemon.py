@@ -20,6 +20,7 @@ from zoneinfo import ZoneInfo
 
 import structlog
 
+from silo_agent.base.exits import FAILURE, OK
 from silo_agent.config import Config, ConfigError, config_warnings, load_config, stale_after_s
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.service.live_control import LiveControl
@@ -33,6 +34,8 @@ from silo_agent.telemetry.prometheus import Metrics
 log = structlog.get_logger(__name__)
 
 LOOP_S = 1.0  # longest sleep of the main loop without a watchdog
+THREAD_RESTARTS = 3  # restarts of one internal thread within RESTART_WINDOW_S, then exit 1
+RESTART_WINDOW_S = 600.0
 
 
 @dataclass
@@ -89,6 +92,8 @@ class Agent:
         self._done = 0
         self._last: Outcome | None = None
         self._scheduler = None
+        self._deaths: dict[str, list[float]] = {}  # internal thread -> when it died
+        self._status = OK
         self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
 
     def _restore_result(self) -> None:
@@ -358,6 +363,7 @@ class Agent:
                 next_ping = now + watchdog_every
             self._collect()
             self._outbox_metrics()
+            self._supervise()
             if self._stop.is_set():
                 break
             if self._reload.is_set() and self._running is None:  # never mid-scan
@@ -374,6 +380,34 @@ class Agent:
             self._wake.wait(timeout)
             self._wake.clear()
         return self._shutdown()
+
+    def _supervise(self) -> None:
+        """An internal thread that died (an error nobody caught) is restarted. One that died
+        more than THREAD_RESTARTS times in RESTART_WINDOW_S stops the agent with status 1:
+        the process must not look alive while it cannot publish; systemd restarts it."""
+        threads = (
+            ("mqtt", self.telemetry.alive, self.telemetry.restart),
+            ("metrics", self.metrics.alive, self.metrics.restart),
+        )
+        for name, alive, restart in threads:
+            if alive():
+                continue
+            now = time.monotonic()
+            deaths = [t for t in self._deaths.get(name, []) if now - t < RESTART_WINDOW_S]
+            deaths.append(now)
+            self._deaths[name] = deaths
+            if len(deaths) > THREAD_RESTARTS:
+                log.critical(
+                    "internal thread keeps dying: the agent stops, to be restarted",
+                    thread=name,
+                    deaths=len(deaths),
+                    window_s=RESTART_WINDOW_S,
+                )
+                self._status = FAILURE
+                self._stop.set()
+                return
+            log.error("internal thread died: restarting it", thread=name)
+            restart()
 
     def _outbox_metrics(self) -> None:
         pending, _ = self.telemetry.outbox.size()
@@ -402,5 +436,5 @@ class Agent:
         self.telemetry.stop()  # flushes what it can within mqtt.shutdown_timeout_s, `stopped`
         self.metrics.close()
         self.notifier.close()
-        log.info("agent stopped", scans=self._done)
-        return 0
+        log.info("agent stopped", scans=self._done, status=self._status)
+        return self._status

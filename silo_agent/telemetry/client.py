@@ -115,6 +115,23 @@ class Telemetry:
         self._links = self.transport.links
         self._thread: threading.Thread | None = None
         self._report_outbox_damage()
+        self.outbox.on_fault = self._outbox_fault
+        self.outbox.announce()  # a disk that could not be written at open
+
+    def _outbox_fault(self, change: str, message: str) -> None:
+        """The outbox could not write its database (full, read-only, deleted), or can again:
+        the `outbox` alarm (its clearing waits while a corrupt copy waits for the operator)."""
+        if change == "cleared" and self.outbox.corrupt_raised:
+            return
+        self.publish_alarm(
+            {
+                "type": "outbox",
+                "state": change,
+                "scan_id": None,
+                "severity": "warning",
+                "message": message,
+            }
+        )
 
     def _report_outbox_damage(self) -> None:
         """The `outbox` alarm: raised when a corrupt outbox was moved aside at open (what it
@@ -294,6 +311,19 @@ class Telemetry:
     def start(self) -> None:
         self._thread = threading.Thread(target=self.transport.run, name="mqtt", daemon=True)
         self._thread.start()
+
+    def alive(self) -> bool:
+        """The network thread runs (or has not been started, or was asked to stop)."""
+        thread = self._thread
+        return thread is None or thread.is_alive() or self.transport.stopping.is_set()
+
+    def restart(self) -> None:
+        """A new network thread after the last one died: its connections are dropped, the
+        outbox resends what was not acknowledged."""
+        for link in self.transport.links:
+            self.transport.drop(link, "network thread restarted")
+            link.retry_at = 0.0
+        self.start()
 
     def stop(self) -> None:
         """Send what is pending (up to shutdown_timeout_s), `stopped`, NDEATH; disconnect."""

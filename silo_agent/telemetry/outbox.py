@@ -15,16 +15,17 @@ atomically), which always holds a `seq` at or above every one handed out.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sqlite3
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
 import structlog
 
@@ -68,6 +69,31 @@ CREATE TABLE IF NOT EXISTS dead_letter (
 DEAD_LETTER_KEEP = 1000  # newest dead letters kept for inspection; the counter counts all
 SEQ_RESERVE = 1000  # seq values the state file reserves at a time (one fsync per block)
 WILL_SEQ_HEADROOM = 1_000_000  # seq values a session may use below its Last Will's seq
+MEMORY_MAX_MESSAGES = 10_000  # the queue held in memory while the disk cannot take it
+MEMORY_MAX_BYTES = 16 * 2**20  # ... about 150 scans' results with their height maps
+TEND_S = 1.0  # how often the file is checked (deleted?) or, in memory, the disk tried again
+# SQLite primary result codes of a disk that cannot take a write (full, read-only, I/O error,
+# gone); any other error is a bug or a corrupt file
+STORAGE_ERRORS = frozenset(
+    {
+        sqlite3.SQLITE_FULL,
+        sqlite3.SQLITE_IOERR,
+        sqlite3.SQLITE_READONLY,
+        sqlite3.SQLITE_CANTOPEN,
+        sqlite3.SQLITE_PERM,
+    }
+)
+T = TypeVar("T")
+
+
+def _is_storage_error(exc: sqlite3.Error) -> bool:
+    return (getattr(exc, "sqlite_errorcode", 0) & 0xFF) in STORAGE_ERRORS
+
+
+def _close_quietly(db: sqlite3.Connection) -> None:
+    """Close a connection to a file that may be gone or full (its checkpoint may fail)."""
+    with contextlib.suppress(sqlite3.Error):
+        db.close()
 
 
 @dataclass(frozen=True)
@@ -115,27 +141,71 @@ class Outbox:
 
     def __init__(self, path: Path, limits: OutboxLimits | None = None) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.limits = limits or OutboxLimits()
         self.state_path = self.path.with_name(self.path.name + ".state.json")
         self.moved_aside: Path | None = None  # where a corrupt outbox went at open, if it was
+        self.fault: str | None = None  # why the queue is held in memory, not on disk
+        self.on_fault: Callable[[str, str], None] | None = None  # ("raised"|"cleared", why)
+        self._events: list[tuple[str, str]] = []  # fault changes not yet announced
         self._lock = threading.Lock()
+        self._identity: tuple[int, int] | None = None  # (device, inode) of the open file
+        self._tended_at = 0.0
         try:
-            self._db = self._connect()
-        except sqlite3.DatabaseError as exc:
-            self.moved_aside = self._move_aside(exc)
-            self._db = self._connect()
+            try:
+                self._db = self._open_disk()
+            except sqlite3.DatabaseError as exc:
+                if _is_storage_error(exc):
+                    raise
+                self.moved_aside = self._move_aside(exc)
+                self._db = self._open_disk()
+        except (sqlite3.Error, OSError) as exc:  # full, read-only, unreachable: in memory
+            self._db = self._memory_db(self._read_only_disk())
+            self._set_fault(f"cannot open {self.path}: {exc}")
         self._state = self._read_state()
         self._resume_counters()
 
-    def _connect(self) -> sqlite3.Connection:
-        """Open and check the database; sqlite3.DatabaseError if it is not a sound one."""
+    def _open_disk(self, check: bool = True) -> sqlite3.Connection:
+        """The database file (created, with its directory, if missing); remembers which file
+        it is, so that `tend` notices when it is deleted or replaced."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        db = self._connect(check)
+        stat = os.stat(self.path)
+        self._identity = (stat.st_dev, stat.st_ino)
+        return db
+
+    def _read_only_disk(self) -> sqlite3.Connection | None:
+        """The database file opened read-only, if it can be read at all (a full or read-only
+        disk still holds the messages queued before)."""
+        if not self.path.is_file():
+            return None
+        try:
+            db = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True)
+            db.execute("SELECT COUNT(*) FROM messages").fetchone()
+            return db
+        except (sqlite3.Error, OSError):
+            return None
+
+    def _memory_db(self, source: sqlite3.Connection | None) -> sqlite3.Connection:
+        """An in-memory database with the schema, holding a copy of `source` if given."""
+        memory = sqlite3.connect(":memory:", check_same_thread=False, isolation_level=None)
+        if source is not None:
+            try:
+                source.backup(memory)
+            except sqlite3.Error as exc:
+                log.error("cannot read the outbox database", path=str(self.path), error=str(exc))
+            finally:
+                _close_quietly(source)
+        memory.executescript(SCHEMA)
+        return memory
+
+    def _connect(self, check: bool = True) -> sqlite3.Connection:
+        """Open (and `check`) the database; sqlite3.DatabaseError if it is not a sound one."""
         db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         try:
             db.execute("PRAGMA journal_mode=WAL")
             db.execute("PRAGMA synchronous=FULL")
             db.executescript(SCHEMA)
-            (verdict,) = db.execute("PRAGMA quick_check").fetchone()
+            (verdict,) = db.execute("PRAGMA quick_check").fetchone() if check else ("ok",)
             if verdict != "ok":
                 raise sqlite3.DatabaseError(f"integrity check failed: {verdict}")
         except sqlite3.DatabaseError:
@@ -189,7 +259,8 @@ class Outbox:
     def _resume_counters(self) -> None:
         """A database without a `seq` (new, emptied or replaced) continues from the state
         file, so `seq` and `bdSeq` never go back."""
-        with self._tx():
+
+        def body() -> None:
             if self._db.execute("SELECT 1 FROM counters WHERE name = 'seq'").fetchone() is None:
                 for name in ("seq", "bd_seq"):
                     if self._state.get(name, 0) > self._counter(name):
@@ -200,6 +271,13 @@ class Outbox:
                 "bd_seq": self._counter("bd_seq"),
                 "corrupt_alarm": self._state.get("corrupt_alarm", 0),
             }
+
+        self._write(body)
+
+    @property
+    def corrupt_raised(self) -> bool:
+        """The `outbox` alarm raised for a corrupt database moved aside is still on."""
+        return bool(self._state.get("corrupt_alarm"))
 
     def corrupt_alarm_change(self) -> str | None:
         """ "raised" when a corrupt outbox was just moved aside, "cleared" at the first start
@@ -217,20 +295,154 @@ class Outbox:
             self._write_state()
         return change
 
-    @contextmanager
-    def _tx(self) -> Iterator[None]:
-        """One IMMEDIATE transaction under the lock: committed (fsynced) or rolled back."""
+    def _write(self, body: Callable[[], T]) -> T:
+        """Run `body` in one IMMEDIATE transaction under the lock: committed (fsynced) or
+        rolled back. When the disk cannot take it (full, read-only, gone), the queue moves
+        into memory and `body` runs there: a producer never fails for the disk's sake."""
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
             try:
-                yield
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+                result = self._transaction(body)
+            except sqlite3.Error as exc:
+                if self.fault is not None or not _is_storage_error(exc):
+                    raise
+                self._spill(f"cannot write {self.path}: {exc}")
+                result = self._transaction(body)
+        self.announce()
+        return result
+
+    def _transaction(self, body: Callable[[], T]) -> T:
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            result = body()
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:  # SQLite may have rolled it back itself (disk full)
+                with contextlib.suppress(sqlite3.Error):
+                    db.execute("ROLLBACK")
+            raise
+        return result
+
+    def _spill(self, reason: str) -> None:
+        """Hold the queue in memory (a copy of the database, cut to the memory bounds, newest
+        kept) until the disk takes it again (`tend`)."""
+        disk = self._db
+        self._db = self._memory_db(disk)
+        self._set_fault(reason)
+        dropped = self._transaction(self._enforce_bounds)
+        if dropped:
+            log.warning("outbox in memory: oldest messages dropped to fit", dropped=dropped)
+
+    def _set_fault(self, reason: str | None) -> None:
+        if reason is not None and self.fault is None:
+            log.error(
+                "outbox database cannot be written: messages are held in memory until it can",
+                path=str(self.path),
+                error=reason,
+                keep_messages=MEMORY_MAX_MESSAGES,
+                keep_bytes=MEMORY_MAX_BYTES,
+            )
+            self._events.append(
+                (
+                    "raised",
+                    f"{reason}; the newest messages (up to {MEMORY_MAX_MESSAGES:,}, "
+                    f"{MEMORY_MAX_BYTES // 2**20} MiB) are held in memory and lost if the agent "
+                    "stops before the disk takes them",
+                )
+            )
+        elif reason is None and self.fault is not None:
+            log.info("outbox database writable again", path=str(self.path))
+            self._events.append(("cleared", f"outbox database {self.path} writable again"))
+        self.fault = reason
+
+    def announce(self) -> None:
+        """Tell `on_fault` of the fault changes met so far (never under the lock: it queues
+        the `outbox` alarm through this outbox)."""
+        if self.on_fault is None:
+            return
+        with self._lock:
+            events, self._events = self._events, []
+        for change, message in events:
+            self.on_fault(change, message)
+
+    def tend(self) -> None:
+        """Called often by the network thread; every TEND_S: notice a database file deleted
+        or replaced under the agent (writes would go to a file nobody reads again) and
+        recreate it; while the queue is in memory, try the disk again."""
+        now = time.monotonic()
+        if now < self._tended_at + TEND_S:
+            return
+        self._tended_at = now
+        with self._lock:
+            if self.fault is None:
+                self._check_file()
+            else:
+                self._recover()
+        self.announce()
+
+    def _check_file(self) -> None:
+        try:
+            stat = os.stat(self.path)
+            if (stat.st_dev, stat.st_ino) == self._identity:
+                return
+        except OSError:
+            pass
+        pending = self._db.execute("SELECT COUNT(*) FROM messages").fetchone()[0]
+        log.error(
+            "outbox database deleted or replaced while running: recreating it",
+            path=str(self.path),
+            pending=pending,
+        )
+        self._events.append(
+            (
+                "raised",
+                f"outbox database {self.path} was deleted or replaced while the agent ran; "
+                f"recreating it with the {pending} messages pending",
+            )
+        )
+        old = self._db
+        try:
+            new = self._open_disk(check=False)
+            old.backup(new)
+        except (sqlite3.Error, OSError) as exc:
+            self._spill(f"cannot recreate {self.path}: {exc}")
+            return
+        self._db = new
+        _close_quietly(old)
+        self._events.append(("cleared", f"outbox database {self.path} recreated"))
+
+    def _recover(self) -> None:
+        """Copy the queue held in memory onto the disk; on success, work on disk again."""
+        try:
+            disk = self._open_disk(check=False)
+        except sqlite3.DatabaseError as exc:
+            if _is_storage_error(exc):
+                return
+            self.moved_aside = self._move_aside(exc)  # corrupt meanwhile: start it afresh
+            return
+        except OSError:
+            return
+        try:
+            self._db.backup(disk)
+        except sqlite3.Error:
+            _close_quietly(disk)
+            return
+        memory, self._db = self._db, disk
+        memory.close()
+        self._set_fault(None)
 
     def close(self) -> None:
         with self._lock:
+            if self.fault is not None:
+                self._recover()
+            if self.fault is not None:
+                pending = self._db.execute("SELECT COUNT(*) FROM messages").fetchone()[0]
+                log.error(
+                    "outbox database still cannot be written: the messages held in memory are lost",
+                    path=str(self.path),
+                    lost=pending,
+                    error=self.fault,
+                )
             self._db.close()
 
     # ------------------------------------------------------------ counters
@@ -263,7 +475,8 @@ class Outbox:
         """The `seq` of the next session's Last Will: WILL_SEQ_HEADROOM above the current one,
         so the `offline` status sorts after everything the session sends. Attempts that never
         connected leave it armed, so it is reused while there is room below it."""
-        with self._tx():
+
+        def body() -> int:
             seq, will = self._counter("seq"), self._counter("will_seq")
             if will - seq < WILL_SEQ_HEADROOM // 2:
                 self._bump("will_seq", seq + WILL_SEQ_HEADROOM - will)
@@ -272,6 +485,8 @@ class Outbox:
                     self._state["seq"] = will
                     self._write_state()
             return will
+
+        return self._write(body)
 
     def near_will_seq(self, will_seq: int) -> bool:
         """The session whose Last Will carries `will_seq` is about to reach it: a new session
@@ -286,14 +501,12 @@ class Outbox:
     def pass_will(self) -> None:
         """A session ended and the broker may have published its Last Will: what follows
         must sort after it."""
-        with self._tx():
-            self._pass_will()
+        self._write(self._pass_will)
 
     def disarm_will(self) -> None:
         """A clean shutdown said `stopped`: no Last Will was sent, the next start need not
         skip over it."""
-        with self._tx():
-            self._db.execute("DELETE FROM counters WHERE name = 'will_seq'")
+        self._write(lambda: self._db.execute("DELETE FROM counters WHERE name = 'will_seq'"))
 
     @property
     def last_seq(self) -> int:
@@ -301,8 +514,7 @@ class Outbox:
 
     def next_envelope(self) -> Envelope:
         """A fresh envelope for a message that is sent directly (session state, not queued)."""
-        with self._tx():
-            return Envelope.new(self._next_seq())
+        return self._write(lambda: Envelope.new(self._next_seq()))
 
     def bd_seq(self) -> int:
         """Sparkplug bdSeq, 0..255, for the Last Will of the next CONNECT. It stays the same
@@ -315,9 +527,12 @@ class Outbox:
         """The broker accepted a session with the current bdSeq: the next CONNECT takes the
         next one. Committed (and in the state file) before that session's NBIRTH, so no later
         session, in this process or the next, births with the same bdSeq."""
-        with self._tx():
+
+        def body() -> None:
             self._state["bd_seq"] = self._bump("bd_seq")
             self._write_state()
+
+        self._write(body)
 
     # ------------------------------------------------------------ queue
 
@@ -335,7 +550,8 @@ class Outbox:
     ) -> Envelope | None:
         """Commit one message; `build` turns the envelope (seq taken in the same transaction)
         into the payload. `latest` drops older pending rows of the same topic."""
-        with self._tx():
+
+        def body() -> tuple[Envelope | None, int]:
             env = Envelope.new(self._next_seq()) if with_envelope else None
             payload = build(env)
             if latest:
@@ -357,7 +573,9 @@ class Outbox:
                     len(payload) + len(topic),
                 ),
             )
-            dropped = self._enforce_bounds()
+            return env, self._enforce_bounds()
+
+        env, dropped = self._write(body)
         if dropped:
             log.warning(
                 "outbox bound reached, oldest messages dropped",
@@ -367,8 +585,15 @@ class Outbox:
         return env
 
     def _enforce_bounds(self) -> int:
-        """Drop by age, then by count and bytes; non-retained first. Returns rows dropped."""
+        """Drop by age, then by count and bytes; non-retained first. Returns rows dropped.
+        In memory the bounds are MEMORY_MAX_MESSAGES and MEMORY_MAX_BYTES at most."""
         limits = self.limits
+        if self.fault is not None:
+            limits = replace(
+                limits,
+                max_messages=min(limits.max_messages, MEMORY_MAX_MESSAGES),
+                max_bytes=min(limits.max_bytes, MEMORY_MAX_BYTES),
+            )
         dropped = self._db.execute(
             "DELETE FROM messages WHERE retain = 0 AND created < ?",
             (time.time() - limits.max_age_s,),
@@ -422,19 +647,26 @@ class Outbox:
 
     def ack(self, row_ids: list[int]) -> None:
         """The broker has these messages: forget them (one transaction)."""
-        with self._tx():
-            self._db.executemany("DELETE FROM messages WHERE id = ?", [(i,) for i in row_ids])
+        self._write(
+            lambda: self._db.executemany(
+                "DELETE FROM messages WHERE id = ?", [(i,) for i in row_ids]
+            )
+        )
 
     def reject(self, row_id: int) -> None:
         """The broker refused the message for good (e.g. ACL): forget it, but count it."""
-        with self._tx():
+
+        def body() -> None:
             self._db.execute("DELETE FROM messages WHERE id = ?", (row_id,))
             self._bump("rejected")
+
+        self._write(body)
 
     def dead_letter(self, row_id: int, reason: str) -> None:
         """This row can never be published: move it to `dead_letter`, count it, keep the
         newest DEAD_LETTER_KEEP there."""
-        with self._tx():
+
+        def body() -> None:
             moved = self._db.execute(
                 "INSERT INTO dead_letter(id, topic, payload, qos, retain, kind, msg_id, seq,"
                 " correlation, created, reason, dead_at) SELECT id, topic, payload, qos, retain,"
@@ -450,6 +682,8 @@ class Outbox:
             if moved:
                 self._bump("dead_lettered")
 
+        self._write(body)
+
     def dead_letters(self) -> list[tuple[Row, str]]:
         """The dead letters kept, oldest first, with the reason of each."""
         with self._lock:
@@ -461,8 +695,7 @@ class Outbox:
 
     def discard_kind(self, kind: str) -> None:
         """Forget pending messages of a kind that is no longer sent (not counted as drops)."""
-        with self._tx():
-            self._db.execute("DELETE FROM messages WHERE kind = ?", (kind,))
+        self._write(lambda: self._db.execute("DELETE FROM messages WHERE kind = ?", (kind,)))
 
     def size(self) -> tuple[int, int]:
         """(pending messages, pending bytes)."""

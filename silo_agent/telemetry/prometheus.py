@@ -7,6 +7,7 @@ each alarm type) exists from the start at 0, so `absent()` never hides a quiet a
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable
 from wsgiref.simple_server import WSGIServer
 
@@ -82,6 +83,8 @@ class Metrics:
         self.set_alarms(())
         self._dropped_seen = 0
         self._server: WSGIServer | None = None
+        self._thread: threading.Thread | None = None
+        self._cfg: MetricsConfig | None = None
 
     def set_alarms(self, active: Iterable[str]) -> None:
         """1 for the raised alarm types, 0 for every other one."""
@@ -98,7 +101,22 @@ class Metrics:
 
     def serve(self, cfg: MetricsConfig) -> None:
         if cfg.enabled:
-            self._server, _thread = start_http_server(cfg.port, cfg.host, registry=self.registry)
+            self._cfg = cfg
+            self._server, self._thread = start_http_server(
+                cfg.port, cfg.host, registry=self.registry
+            )
+
+    def alive(self) -> bool:
+        """The endpoint's thread runs (or there is none)."""
+        return self._thread is None or self._thread.is_alive()
+
+    def restart(self) -> None:
+        """A new endpoint after its thread died."""
+        server, self._server, self._thread = self._server, None, None
+        if server is not None:
+            server.server_close()
+        if self._cfg is not None:
+            self.serve(self._cfg)
 
     def close(self) -> None:
         if self._server is not None:

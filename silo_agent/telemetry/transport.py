@@ -147,15 +147,27 @@ class Transport:
                     deadline = time.monotonic() + self.cfg.shutdown_timeout_s
                 if self._drained() or time.monotonic() >= deadline:
                     break
+            self.outbox.tend()
             for link in self.links:
                 try:
                     self._step(link)
                 except Exception:  # a bug must not end publishing: log, reconnect, go on
                     log.exception("MQTT loop error", link=link.name)
-                    self._close(link, "internal error")
+                    self.drop(link, "internal error")
             if not any(link.client for link in self.links):
                 time.sleep(0.05)
         self._shutdown()
+
+    def drop(self, link: Link, reason: str) -> None:
+        """Close `link` after an error (or for a restart of the thread) and reconnect later;
+        never raises, whatever state the error left the link in."""
+        try:
+            self._close(link, reason)
+        except Exception:
+            log.exception("MQTT connection could not be closed cleanly", link=link.name)
+            link.client = None
+            link.reset_session()
+            self._schedule_retry(link, reason, quiet=True)
 
     def _drained(self) -> bool:
         json_link = self.links[0]
