@@ -14,7 +14,9 @@ from __future__ import annotations
 import itertools
 import json
 import subprocess
+import threading
 import time
+import urllib.request
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,10 +25,14 @@ import pytest
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from silo_agent.base.exits import FAILURE
+from silo_agent.config import load_config
+from silo_agent.service.daemon import THREAD_RESTARTS, Agent
+from silo_agent.service.sdnotify import Notifier
 from tests.support.agent import BASE, Daemon, NotifySocket, write_config
-from tests.support.faults import delete, fill, force_read_only
+from tests.support.faults import delete, fill, force_read_only, kill_thread
 from tests.support.mqtt import validate_json
-from tests.support.mqtt_broker import Broker, Collector
+from tests.support.mqtt_broker import Broker, Collector, free_port
 
 pytestmark = [pytest.mark.slow, pytest.mark.broker]
 
@@ -218,6 +224,135 @@ def test_a_broken_directory_never_silences_the_agent(rig: Rig, where: str, fault
     rig.healthy_since(log_lines)
 
 
-# ---------------------------------------------------------------- helpers for other cases
+# ---------------------------------------------------------------- internal threads killed
 
-Check = Callable[[Rig], None]
+
+@dataclass
+class InProcess:
+    """The agent in this process (its main loop in a thread), so that a test can end one of
+    its threads from outside (`kill_thread`) as an uncaught error would."""
+
+    agent: Agent
+    main: threading.Thread
+    col: Collector
+    status: list[int]
+
+    def send(self, command: str, body: bytes) -> bytes:
+        correlation = f"fault-{next(counter)}".encode()
+        props = Properties(PacketTypes.PUBLISH)
+        props.ResponseTopic = REPLIES
+        props.CorrelationData = correlation
+        self.col.publish(f"{BASE}/cmd/{command}", body, props)
+        return correlation
+
+    def replies(self, correlation: bytes, final: bool = True, timeout: float = 60) -> list[dict]:
+        """The replies to one command, once there is a final one (or any, if not `final`)."""
+
+        def got(ms: list) -> list[dict]:
+            return [
+                json.loads(m.payload)
+                for m in ms
+                if m.topic == REPLIES and m.properties.CorrelationData == correlation
+            ]
+
+        self.col.wait_for(
+            lambda ms: any(r["status"] != "accepted" or not final for r in got(ms)), timeout
+        )
+        return got(self.col.messages)
+
+
+def _wait(check: Callable[[], bool], timeout: float = 30) -> None:
+    end = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
+def _thread(prefix: str) -> threading.Thread:
+    """The running thread whose name starts with `prefix`, once there is one."""
+    found: list[threading.Thread] = []
+
+    def look() -> bool:
+        found[:] = [t for t in threading.enumerate() if t.name.startswith(prefix)]
+        return bool(found)
+
+    _wait(look)
+    return found[0]
+
+
+def _metrics_answer(agent: Agent) -> bool:
+    url = f"http://127.0.0.1:{agent.config.metrics.port}/metrics"
+    with urllib.request.urlopen(url, timeout=5) as response:
+        return b"silo_agent_scans_total" in response.read()
+
+
+@pytest.fixture
+def in_process(tmp_path, broker, collector_factory) -> Iterator[InProcess]:
+    path = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        schedule={"scan_at_start": False},
+        simulation={"capture_s": 0.05},
+        metrics={"enabled": True, "port": free_port()},
+    )
+    small = path.read_text().replace("width = 424", "width = 212")
+    path.write_text(small.replace("height = 240", "height = 120") + LIVE_SECTION)
+    agent = Agent(path, load_config(path, service=True), notifier=Notifier(None))
+    status: list[int] = []
+    main = threading.Thread(target=lambda: status.append(agent.run()), name="agent-main")
+    col = collector_factory(broker, [f"{BASE}/#", REPLIES])
+    main.start()
+    col.wait_topic(f"{BASE}/status")
+    yield InProcess(agent, main, col, status)
+    agent.stop()
+    main.join(30)
+
+
+LIVE_SECTION = "\n[live]\ngrid_step_m = 0.1\nrate_hz = 4.0\n"
+
+
+@pytest.mark.parametrize("name", ["mqtt", "metrics", "scan", "live"])
+def test_a_killed_internal_thread_is_restarted_or_reported(in_process: InProcess, name: str):
+    """mqtt and metrics are restarted; a killed scan is reported failed, a killed live
+    session ends with an error reply; the next scan or session runs."""
+    run = in_process
+    if name == "mqtt":
+        sessions = len(run.col.on(f"{BASE}/status"))
+        kill_thread(_thread("mqtt"))
+        run.col.wait_topic(f"{BASE}/status", sessions + 1)  # a new session, subscribed
+    elif name == "metrics":
+        before = run.agent.metrics._thread
+        assert before is not None and _metrics_answer(run.agent)
+        kill_thread(before)
+        _wait(lambda: run.agent.metrics._thread not in (None, before))
+        assert _metrics_answer(run.agent)
+    elif name == "scan":
+        asked = run.send("scan", b'{"request_id": "killed"}')
+        kill_thread(_thread("scan-"))
+        final = run.replies(asked)[-1]
+        assert final["status"] == "error" and "without a result" in final["error"]
+        run.col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/scan" and json.loads(m.payload)["scan_id"] == final["scan_id"]
+                for m in ms
+            )
+        )
+    else:
+        asked = run.send("live", b'{"on": true, "duration_s": 60}')
+        kill_thread(_thread("live-"))
+        final = run.replies(asked)[-1]
+        assert final["status"] == "error" and "internal error" in final["error"]
+        again = run.send("live", b'{"on": true, "duration_s": 1}')
+        assert run.replies(again)[-1]["status"] == "done"
+    after = run.send("scan", b'{"request_id": "after"}')
+    assert run.replies(after)[-1]["status"] == "done"
+    assert run.main.is_alive()
+
+
+def test_a_thread_that_keeps_dying_stops_the_agent_with_status_1(in_process: InProcess):
+    for _ in range(THREAD_RESTARTS + 1):
+        kill_thread(_thread("mqtt"))  # returns once it is dead; the agent restarts it, or ends
+        _wait(lambda: in_process.agent.telemetry.alive() or not in_process.main.is_alive())
+    in_process.main.join(30)
+    assert in_process.status == [FAILURE]

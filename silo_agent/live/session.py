@@ -178,6 +178,15 @@ class LiveSession:
         self._on_end(reason)
 
     def _loop(self) -> None:
+        """The session's thread; whatever ends it ends the session with a reply (a thread
+        that died silently would be resumed by the agent, and fail again, for ever)."""
+        try:
+            self._capture()
+        except BaseException as exc:
+            log.exception("live session failed", session=self.session_id)
+            self._end(f"internal error: {exc!r}")
+
+    def _capture(self) -> None:
         period = 1.0 / self.rate_hz
         try:
             self._source = open_source(self.config)  # here, not in the agent's loop: seconds

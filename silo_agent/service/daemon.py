@@ -321,6 +321,10 @@ class Agent:
     # ------------------------------------------------------------ main loop
 
     def run(self) -> int:
+        """Serve until stopped; the exit status. Signals are handled when run in the main
+        thread (the service); elsewhere (embedded, tests) `stop()` ends it."""
+        if threading.current_thread() is not threading.main_thread():
+            return self._serve()
         handlers = {
             s: signal.signal(s, self._signal)
             for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
@@ -330,6 +334,11 @@ class Agent:
         finally:
             for s, previous in handlers.items():
                 signal.signal(s, previous)
+
+    def stop(self) -> None:
+        """Stop as SIGTERM does."""
+        self._stop.set()
+        self._wake.set()
 
     def _serve(self) -> int:
         config = self.config

@@ -75,11 +75,17 @@ def delete(directory: Path) -> None:
     shutil.rmtree(directory)
 
 
-def kill_thread(thread: threading.Thread) -> None:
+def kill_thread(thread: threading.Thread, timeout: float = 20) -> None:
     """End a Python thread from outside, as an error nobody caught would: SystemExit raised
-    in it at its next bytecode (CPython's PyThreadState_SetAsyncExc)."""
+    in it at its next bytecode (CPython's PyThreadState_SetAsyncExc). Raised again while the
+    thread lives: one that lands in a finaliser is ignored by Python."""
     assert thread.ident is not None
-    done = ctypes.pythonapi.PyThreadState_SetAsyncExc(
-        ctypes.c_ulong(thread.ident), ctypes.py_object(SystemExit)
-    )
-    assert done == 1, f"no such thread: {thread.name}"
+    for _ in range(int(timeout)):
+        done = ctypes.pythonapi.PyThreadState_SetAsyncExc(
+            ctypes.c_ulong(thread.ident), ctypes.py_object(SystemExit)
+        )
+        assert done == 1, f"no such thread: {thread.name}"
+        thread.join(1.0)
+        if not thread.is_alive():
+            return
+    raise AssertionError(f"thread {thread.name} would not die")
