@@ -408,9 +408,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from silo_agent.service.daemon import Agent
+    from silo_agent.service.state_lock import StateLocked
 
     config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
-    agent = Agent(args.config, config, max_scans=args.scans)
+    try:
+        agent = Agent(args.config, config, max_scans=args.scans)
+    except StateLocked as exc:
+        return _fail(str(exc), FAILURE)
     status = agent.run()
     last = agent.last_outcome
     if args.scans is not None and last is not None and last.summary is not None:

@@ -26,6 +26,7 @@ from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.live.map import DepthFrame, LiveMap
 from silo_agent.live.model import LiveRobotModel
+from silo_agent.telemetry.client import LiveMapTooLarge
 from silo_agent.telemetry.heightmap_codec import encode_live_heightmap
 
 log = structlog.get_logger(__name__)
@@ -237,7 +238,12 @@ class LiveSession:
             # at most rate_hz, however long each map took
             if self._stop.wait(max(0.0, sent + period - time.monotonic())):
                 return
-            self._publish(payload, period)
+            try:
+                self._publish(payload, period)
+            except LiveMapTooLarge as exc:
+                log.error("live map too large for the broker", session=self.session_id)
+                self._end(str(exc))
+                return
             sent = time.monotonic()
             self.stats.maps += 1
             self._stop.wait(max(0.0, began + period - time.monotonic()))

@@ -27,6 +27,7 @@ from silo_agent.service.live_control import LiveControl
 from silo_agent.service.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
 from silo_agent.service.scan_path import new_scan_id
 from silo_agent.service.sdnotify import Notifier
+from silo_agent.service.state_lock import StateLock
 from silo_agent.storage.audit import AuditCache
 from silo_agent.telemetry.client import CommandRejected, ScanCommand, Telemetry
 from silo_agent.telemetry.prometheus import Metrics
@@ -75,6 +76,8 @@ class Agent:
         self.config = config
         self.max_scans = max_scans
         self.notifier = notifier or Notifier.from_env()
+        self.state_lock = StateLock.of(config)
+        self.state_lock.acquire()  # StateLocked: another agent runs on this state
         self.metrics = Metrics()
         self.telemetry = Telemetry.from_config(config)
         self.cache = AuditCache(config.audit, config.silo.id)
@@ -445,5 +448,6 @@ class Agent:
         self.telemetry.stop()  # flushes what it can within mqtt.shutdown_timeout_s, `stopped`
         self.metrics.close()
         self.notifier.close()
+        self.state_lock.release()
         log.info("agent stopped", scans=self._done, status=self._status)
         return self._status

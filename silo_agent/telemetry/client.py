@@ -29,7 +29,7 @@ from silo_agent.telemetry.commands import (
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
 from silo_agent.telemetry.link import KIND_BINARY, KIND_JSON, KIND_SPARKPLUG
 from silo_agent.telemetry.live_command import LiveCommand
-from silo_agent.telemetry.mqtt_session import Identity, NodeState, Session
+from silo_agent.telemetry.mqtt_session import Identity, NodeState, Session, live_too_large
 from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import (
     CameraState,
@@ -47,11 +47,16 @@ __all__ = [  # the names callers import from here, wherever they live
     "POISON_STRIKES",
     "WILL_SEQ_HEADROOM",
     "CommandRejected",
+    "LiveMapTooLarge",
     "ScanCommand",
     "Telemetry",
     "read_secret",
     "reply_topic_problem",
 ]
+
+
+class LiveMapTooLarge(Exception):
+    """A live map the broker would not take (its Maximum Packet Size); the message says so."""
 
 
 class Telemetry:
@@ -298,9 +303,17 @@ class Telemetry:
 
     def publish_live(self, payload: bytes, max_age_s: float, qos: int = 0) -> None:
         """Send a live map on `P/heightmap/live` (not retained, not through the outbox): it
-        replaces an unsent one, and is dropped if no connection takes it within max_age_s."""
+        replaces an unsent one, and is dropped if no connection takes it within max_age_s.
+        LiveMapTooLarge if it (or the last one) is over the broker's Maximum Packet Size:
+        sent, it would only get the agent disconnected."""
+        _topic, _props, size = self.session.live_packet(payload, qos)
         with self.state.lock:
-            self.state.live_map = (payload, time.monotonic() + max_age_s, qos)
+            problem = live_too_large(size, self._links[0].max_packet) or self.state.live_refused
+            self.state.live_refused = None
+            if problem is None:
+                self.state.live_map = (payload, time.monotonic() + max_age_s, qos)
+        if problem is not None:
+            raise LiveMapTooLarge(problem)
 
     def status(self) -> StatusPayload:
         """What `P/status` would say now (state online), e.g. for a health check."""

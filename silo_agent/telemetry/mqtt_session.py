@@ -31,8 +31,20 @@ from silo_agent.telemetry.payloads import (
     alarm_payload,
     idle_alarm,
 )
+from silo_agent.telemetry.pump import publish_packet_size
 
 log = structlog.get_logger(__name__)
+
+
+def live_too_large(size: int, max_packet: int | None) -> str | None:
+    """Why a live map packet of `size` bytes cannot go to a broker whose Maximum Packet Size
+    is `max_packet` (MQTT 5 CONNACK), or None."""
+    if max_packet is None or size <= max_packet:
+        return None
+    return (
+        f"live map of {size:,} bytes is larger than the broker's Maximum Packet Size "
+        f"({max_packet:,} bytes): use a coarser live.grid_step_m or raise the broker's limit"
+    )
 
 
 @dataclass
@@ -49,6 +61,7 @@ class NodeState:
         default_factory=lambda: {t: idle_alarm(t) for t in ALARM_TYPES}
     )
     live_map: tuple[bytes, float, int] | None = None  # payload, stale after, QoS
+    live_refused: str | None = None  # why the last live map could not be sent
     status_dirty: bool = False
     alarms_dirty: bool = False
     ha_dirty: bool = False
@@ -182,19 +195,28 @@ class Session:
                 self.state.rebirth = True  # keep it for when the host is back
         return link.born
 
+    def live_packet(self, payload: bytes, qos: int) -> tuple[str, Properties | None, int]:
+        """Topic, MQTT 5 properties and packet size of a live map."""
+        props = None
+        if self.cfg.protocol == "5":
+            props = Properties(PacketTypes.PUBLISH)
+            props.ContentType = HEIGHTMAP_CONTENT_TYPE
+        topic = self.me.topic("heightmap/live")
+        return topic, props, publish_packet_size(topic, payload, qos, props, props is not None)
+
     def _send_live(self, link: Link) -> None:
         with self.state.lock:
             live, self.state.live_map = self.state.live_map, None
         if live is None or time.monotonic() > live[1]:
             return
         assert link.client is not None
-        props = None
-        if self.cfg.protocol == "5":
-            props = Properties(PacketTypes.PUBLISH)
-            props.ContentType = HEIGHTMAP_CONTENT_TYPE
-        link.client.publish(
-            self.me.topic("heightmap/live"), live[0], qos=live[2], retain=False, properties=props
-        )
+        topic, props, size = self.live_packet(live[0], live[2])
+        problem = live_too_large(size, link.max_packet)
+        if problem is not None:  # the broker would close the connection over it
+            with self.state.lock:
+                self.state.live_refused = problem
+            return
+        link.client.publish(topic, live[0], qos=live[2], retain=False, properties=props)
 
     def _publish_status(self, link: Link, state: AgentState) -> int:
         payload = self.status(state, self.outbox.next_envelope())
