@@ -411,8 +411,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     from silo_agent.service.state_lock import StateLocked
 
     config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
+    web = None
+    if config.web.enabled:  # the port bound now: one in use is a 78 before anything starts
+        from silo_agent.web.server import WebServer
+
+        web = WebServer.bind(config.web)
     try:
-        agent = Agent(args.config, config, max_scans=args.scans)
+        agent = Agent(args.config, config, max_scans=args.scans, web=web)
     except StateLocked as exc:
         return _fail(str(exc), FAILURE)
     status = agent.run()
@@ -488,6 +493,36 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return OK
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    """One self-contained HTML or PNG file of a scan (silo_agent/web/report.py)."""
+    from silo_agent.scan import ScanError
+
+    suffix = args.out.suffix.lower()
+    if suffix not in (".html", ".png"):
+        return _fail(f"--out {args.out}: want a .html or .png file name", USAGE)
+    try:
+        directory = _scan_dir(args.scan, args.config)
+    except ScanError as exc:
+        return _fail(str(exc), EX_DATAERR)
+    from silo_agent.web.archive import load_scan_view
+    from silo_agent.web.report import report_html, report_png
+
+    # a scan id names a kept scan: its published result; a directory given with --config is
+    # processed with the config's settings, as `process --config` does
+    config = load_config(args.config) if args.config and Path(args.scan).is_dir() else None
+    try:
+        view = load_scan_view(directory, config)
+    except ScanError as exc:
+        return _fail(str(exc), EX_DATAERR)
+    data = report_html(view).encode() if suffix == ".html" else report_png(view)
+    try:
+        args.out.write_bytes(data)
+    except OSError as exc:
+        return _fail(f"cannot write {args.out}: {exc.strerror or exc}", FAILURE)
+    print(args.out)
+    return OK
+
+
 def cmd_scans(args: argparse.Namespace) -> int:
     from silo_agent.scan import ScanError, read_manifest
     from silo_agent.storage.audit import RESULT, AuditCache
@@ -556,6 +591,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scan", metavar="SCAN_ID|DIR")
     p.add_argument("--config", type=Path, metavar="FILE", help="to find SCAN_ID in its cache")
     p.set_defaults(handler=cmd_replay)
+
+    p = sub.add_parser("report", help="one self-contained HTML or PNG report of a scan")
+    p.add_argument("scan", metavar="SCAN_DIR|SCAN_ID")
+    p.add_argument("--config", type=Path, metavar="FILE", help="to find SCAN_ID in its cache")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE.html|FILE.png")
+    p.set_defaults(handler=cmd_report)
 
     p = sub.add_parser("scans", help="the audit cache: list, show or export scans")
     p.add_argument("action", choices=["list", "show", "export"])

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from silo_agent.scan import Scan, write_scan
+from tests.support.browser import browser  # noqa: F401
 from tests.support.mqtt import broker, collector_factory, telemetry_factory  # noqa: F401
 from tests.support.synthetic import cone, observe, ring_views
 

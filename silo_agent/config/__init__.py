@@ -28,6 +28,7 @@ from silo_agent.config.reconstruction import ReconstructionConfig
 from silo_agent.config.root import Config
 from silo_agent.config.schedule import ScheduleConfig, scan_gap_s, stale_after_s
 from silo_agent.config.silo import SiloConfig
+from silo_agent.config.web import WebConfig, read_token
 
 __all__ = [
     "SAFE_ID",
@@ -52,11 +53,13 @@ __all__ = [
     "SpacingConfig",
     "SparkplugConfig",
     "Strict",
+    "WebConfig",
     "config_warnings",
     "describe_validation_error",
     "environment_problems",
     "load_config",
     "parse_config",
+    "read_token",
     "scan_gap_s",
     "stale_after_s",
 ]

@@ -14,6 +14,7 @@ from pydantic import (
 
 from silo_agent.config.base import ConfigError
 from silo_agent.config.root import Config
+from silo_agent.config.web import token_problem
 
 
 def describe_validation_error(exc: ValidationError, source: str) -> str:
@@ -105,10 +106,16 @@ def environment_problems(config: Config) -> list[str]:
                 "mqtt.tls.key_password_file": tls.key_password_file,
             }
         )
+    if config.web.enabled:
+        files["web.token_file"] = config.web.token_file
     for key, path in files.items():
         problem = _readable_file_problem(path) if path is not None else None
         if problem:
             problems.append(f"{key}: {problem}")
+    if config.web.enabled and config.web.token_file is not None and not problems:
+        problem = token_problem(config.web.token_file)
+        if problem:
+            problems.append(f"web.token_file: {problem}")
     return problems
 
 

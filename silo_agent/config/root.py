@@ -23,6 +23,7 @@ from silo_agent.config.outputs import AuditConfig, MetricsConfig
 from silo_agent.config.reconstruction import ReconstructionConfig
 from silo_agent.config.schedule import ScheduleConfig
 from silo_agent.config.silo import SiloConfig
+from silo_agent.config.web import WebConfig
 from silo_agent.grid.geometry import (
     grid_shape,
 )
@@ -39,6 +40,7 @@ class Config(Strict):
     audit: AuditConfig = Field(default_factory=AuditConfig)
     alarms: AlarmsConfig = Field(default_factory=AlarmsConfig)
     metrics: MetricsConfig = Field(default_factory=MetricsConfig)
+    web: WebConfig = Field(default_factory=WebConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
     live: LiveConfig = Field(default_factory=LiveConfig)
 

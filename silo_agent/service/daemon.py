@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 from zoneinfo import ZoneInfo
 
 import structlog
@@ -31,6 +32,9 @@ from silo_agent.service.state_lock import StateLock
 from silo_agent.storage.audit import AuditCache
 from silo_agent.telemetry.client import CommandRejected, ScanCommand, Telemetry
 from silo_agent.telemetry.prometheus import Metrics
+
+if TYPE_CHECKING:
+    from silo_agent.web.server import Sources, WebServer
 
 log = structlog.get_logger(__name__)
 
@@ -71,7 +75,9 @@ class Agent:
         config: Config,
         max_scans: int | None = None,
         notifier: Notifier | None = None,
+        web: WebServer | None = None,
     ) -> None:
+        """`web`: the operator's page, bound already (`WebServer.bind`); served from start."""
         self.config_path = config_path
         self.config = config
         self.max_scans = max_scans
@@ -98,6 +104,16 @@ class Agent:
         self._deaths: dict[str, list[float]] = {}  # internal thread -> when it died
         self._status = OK
         self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
+        self.web = web
+
+    def _web_sources(self) -> Sources:
+        """What the page reads: the audit cache, the config, the node's state, live maps."""
+        from silo_agent.web.archive import Archive
+        from silo_agent.web.server import LiveFeed, Sources
+
+        feed = LiveFeed()
+        self.telemetry.watch_live(feed.put)
+        return Sources(Archive(self.cache), lambda: self.config, self.telemetry.snapshot, feed)
 
     def _restore_result(self) -> None:
         """The last published result into the Sparkplug node. A host applies the NDATA the
@@ -306,6 +322,8 @@ class Agent:
             log.warning("config reloaded; [mqtt] and silo.id changes need a restart")
         if new.metrics != self.config.metrics:
             log.warning("config reloaded; [metrics] changes need a restart")
+        if new.web != self.config.web:
+            log.warning("config reloaded; [web] changes need a restart")
         for warning in config_warnings(new):
             log.warning("config", path=str(self.config_path), warning=warning)
         with self._lock:
@@ -354,6 +372,8 @@ class Agent:
         self.pipeline.clear_switched_off_alarms()  # e.g. low_volume_m3 removed while stopped
         self.telemetry.on_live_command(self.live.requested)
         self.telemetry.start()
+        if self.web is not None:
+            self.web.start(self._web_sources())
         self._start_scheduler()
         if config.schedule.scan_at_start:
             with self._lock:
@@ -447,6 +467,8 @@ class Agent:
             self.telemetry.finish_scan_request(command, error="the agent stopped")
         self.telemetry.stop()  # flushes what it can within mqtt.shutdown_timeout_s, `stopped`
         self.metrics.close()
+        if self.web is not None:
+            self.web.stop()
         self.notifier.close()
         self.state_lock.release()
         log.info("agent stopped", scans=self._done, status=self._status)

@@ -193,18 +193,7 @@ class AuditCache:
 
     def heightmap(self, scan_id: str) -> HeightMap | None:
         """The height map kept with a cached scan; None if the scan or the map is gone."""
-        path = self.directory / scan_id / HEIGHTMAP
-        try:
-            with np.load(path) as data:
-                return HeightMap(
-                    origin=(float(data["origin"][0]), float(data["origin"][1])),
-                    step=float(data["step"]),
-                    heights=data["heights"],
-                    observed=data["observed"].astype(bool),
-                    inside=data["inside"],
-                )
-        except (OSError, KeyError, ValueError):
-            return None
+        return read_heightmap(self.directory / scan_id)
 
     # ------------------------------------------------------------ retention
 
@@ -269,6 +258,22 @@ class AuditCache:
         with tarfile.open(out, "w:gz") as tar:
             tar.add(path, arcname=scan_id)
         return out
+
+
+def read_heightmap(directory: Path) -> HeightMap | None:
+    """The height map kept in a scan directory (`add_result`); None if it is missing or
+    unreadable."""
+    try:
+        with np.load(directory / HEIGHTMAP) as data:
+            return HeightMap(
+                origin=(float(data["origin"][0]), float(data["origin"][1])),
+                step=float(data["step"]),
+                heights=data["heights"],
+                observed=data["observed"].astype(bool),
+                inside=data["inside"],
+            )
+    except (OSError, KeyError, ValueError):
+        return None
 
 
 def is_disk_full(exc: OSError) -> bool:

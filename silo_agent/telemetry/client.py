@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 from silo_agent import __version__
 from silo_agent.config import Config, MqttConfig, stale_after_s
@@ -42,6 +44,8 @@ from silo_agent.telemetry.payloads import (
 )
 from silo_agent.telemetry.pump import POISON_STRIKES
 from silo_agent.telemetry.transport import Credentials, Transport, read_secret
+
+RECENT_ALARM_EVENTS = 50  # alarm events the operator's page lists (since the agent started)
 
 __all__ = [  # the names callers import from here, wherever they live
     "POISON_STRIKES",
@@ -119,6 +123,8 @@ class Telemetry:
         )
         self._links = self.transport.links
         self._thread: threading.Thread | None = None
+        self.alarm_events: deque[dict[str, Any]] = deque(maxlen=RECENT_ALARM_EVENTS)
+        self._live_watchers: list[Callable[[bytes], None]] = []
         self._report_outbox_damage()
         self.outbox.on_fault = self._outbox_fault
         self.outbox.announce()  # a disk that could not be written at open
@@ -211,6 +217,8 @@ class Telemetry:
         with self.state.lock:  # before the queue: a state snapshot must never be older than it
             self._record_alarm(event["type"], event)
         env = self._enqueue("alarm", lambda e: alarm_payload(e, event).to_bytes())
+        with self.state.lock:
+            self.alarm_events.append({**event, "ts": env.ts})
         self._enqueue(
             f"alarm/{event['type']}", lambda e: alarm_payload(e, event).to_bytes(), retain=True
         )
@@ -314,6 +322,21 @@ class Telemetry:
                 self.state.live_map = (payload, time.monotonic() + max_age_s, qos)
         if problem is not None:
             raise LiveMapTooLarge(problem)
+        for watch in self._live_watchers:
+            watch(payload)
+
+    def watch_live(self, callback: Callable[[bytes], None]) -> None:
+        """Also hand every live map to `callback` (the session's thread: it must not block)."""
+        self._live_watchers.append(callback)
+
+    def snapshot(self) -> dict[str, Any]:
+        """What the operator's page shows of the node: cameras, alarm states, recent events."""
+        with self.state.lock:
+            return {
+                "cameras": [c.model_dump(mode="json") for c in self.state.cameras.values()],
+                "alarms": {k: dict(v) for k, v in self.state.alarm_states.items()},
+                "events": list(self.alarm_events),
+            }
 
     def status(self) -> StatusPayload:
         """What `P/status` would say now (state online), e.g. for a health check."""

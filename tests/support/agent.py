@@ -33,6 +33,7 @@ def write_config(
     alarms: dict | None = None,
     metrics: dict | None = None,
     mqtt: dict | None = None,
+    web: dict | None = None,
     cameras: tuple[tuple[str, str | None], ...] = (("sim-A2", "A2"), ("sim-A6", "A6")),
 ) -> Path:
     """A config for the test daemon; sections given replace the defaults here (`mqtt` adds
@@ -63,6 +64,7 @@ def write_config(
         },
         "alarms": alarms or {},
         "metrics": metrics or {},
+        "web": web or {},
     }
     lines = [
         "[silo]",

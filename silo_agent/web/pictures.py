@@ -1,0 +1,285 @@
+"""The page's and the report's pictures, drawn by matplotlib's Agg backend (no display).
+
+The height map is laid out cell for pixel: the coloured cells are one exact raster
+(`figimage`, no resampling), `cell_px` pixels a side, with the walls, piles, cameras and
+footprints drawn over it in silo coordinates. `MapLayout` says where cell [row, col] lands, so
+a reader (and the browser test) can find any cell in the picture. Colour is height above the
+floor on `COLORMAP` from `vmin` to `vmax`; a cell filled by interpolation (not observed) is the
+same colour blended `FILLED_BLEND` towards white; outside the region is `OUTSIDE_RGB`.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from silo_agent.heightmap import HeightMap
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from silo_agent.web.archive import CameraView, ScanRecord
+
+COLORMAP = "viridis"
+FILLED_BLEND = 0.45  # share of white mixed into a filled (not observed) cell
+OUTSIDE_RGB = (226, 226, 226)
+MAP_TARGET_PX = 720  # a small map's cells are enlarged to about this many pixels a side
+MAP_MARGIN_PX = 40  # room around the grid for cameras on the walls and their labels
+FOOTPRINT_CELLS = 48  # footprints are outlined on a grid at most this many cells a side...
+FOOTPRINT_SHARE = 0.25  # ...around the blocks where this share of the cells hold its points
+PNG_OPTIONS = {"compress_level": 3}  # a 1200 x 1200 map: a third of the default's time
+CAMERA_COLOURS = ("#e41a1c", "#ff7f00", "#984ea3", "#f781bf", "#a65628", "#377eb8", "#4daf4a")
+
+
+@dataclass(frozen=True)
+class MapLayout:
+    """Where the map's cells are in its picture: cell [row, col]'s pixels (x right, y down
+    from the top-left corner) are x in margin_px + col*cell_px + [0, cell_px), y in
+    height_px - margin_px - (row+1)*cell_px + [0, cell_px): row 0 (minimum y) at the bottom."""
+
+    width_px: int
+    height_px: int
+    margin_px: int
+    cell_px: int
+    rows: int
+    cols: int
+    origin: tuple[float, float]
+    step: float
+    vmin: float
+    vmax: float
+    colormap: str = COLORMAP
+    filled_blend: float = FILLED_BLEND
+    outside_rgb: tuple[int, int, int] = OUTSIDE_RGB
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def layout_of(
+    hm: HeightMap, floor_z: float, marks: Sequence[tuple[float, float]] = ()
+) -> MapLayout:
+    """Cells enlarged to about MAP_TARGET_PX; the margin wide enough for `marks` (camera
+    positions, often on or beyond the walls) to be in the picture."""
+    rows, cols = hm.shape
+    cell_px = max(1, MAP_TARGET_PX // max(rows, cols))
+    finite = hm.heights[np.isfinite(hm.heights)]
+    top = float(finite.max()) if finite.size else floor_z
+    margin = MAP_MARGIN_PX
+    if len(marks):
+        x, y = np.asarray(marks, dtype=float).T
+        beyond = np.concatenate(
+            [
+                hm.origin[0] - x,
+                x - (hm.origin[0] + cols * hm.step),
+                hm.origin[1] - y,
+                y - (hm.origin[1] + rows * hm.step),
+            ]
+        )
+        margin += int(np.ceil(max(0.0, float(beyond.max())) / hm.step * cell_px))
+    return MapLayout(
+        width_px=cols * cell_px + 2 * margin,
+        height_px=rows * cell_px + 2 * margin,
+        margin_px=margin,
+        cell_px=cell_px,
+        rows=rows,
+        cols=cols,
+        origin=hm.origin,
+        step=hm.step,
+        vmin=floor_z,
+        vmax=max(top, floor_z + 0.05),
+    )
+
+
+def legend(layout: MapLayout, stops: int = 9) -> list[str]:
+    """`#rrggbb` colours from vmin to vmax, for a legend drawn by the page."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    cmap = colormaps[layout.colormap]
+    return [to_hex(cmap(k / (stops - 1))) for k in range(stops)]
+
+
+def colour_cells(hm: HeightMap, layout: MapLayout) -> np.ndarray:
+    """(rows, cols, 3) uint8: height colours, filled cells paler, outside grey."""
+    from matplotlib import colormaps
+
+    heights = hm.heights
+    known = np.isfinite(heights)
+    scaled = np.clip(
+        (np.where(known, heights, layout.vmin) - layout.vmin) / (layout.vmax - layout.vmin), 0, 1
+    )
+    rgb = colormaps[layout.colormap](scaled, bytes=True)[..., :3].astype(np.float32)
+    filled = known & ~hm.observed
+    rgb[filled] += (255.0 - rgb[filled]) * layout.filled_blend
+    rgb[~known] = layout.outside_rgb
+    return np.rint(rgb).astype(np.uint8)
+
+
+def _map_figure(hm: HeightMap, layout: MapLayout) -> tuple[Figure, Axes]:
+    """A figure of exactly the layout's pixels with the cells in place and axes in metres."""
+    from matplotlib.figure import Figure
+
+    s, m = layout.cell_px, layout.margin_px
+    cells = colour_cells(hm, layout)
+    raster = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)
+    fig = Figure(figsize=(layout.width_px / 100, layout.height_px / 100), dpi=100)
+    fig.figimage(raster, xo=m, yo=m, origin="lower", zorder=-1)  # under the axes
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    pad = m / s * hm.step
+    x0, y0 = hm.origin
+    ax.set_xlim(x0 - pad, x0 + layout.cols * hm.step + pad)
+    ax.set_ylim(y0 - pad, y0 + layout.rows * hm.step + pad)
+    ax.set_axis_off()
+    ax.patch.set_alpha(0.0)
+    return fig, ax
+
+
+def _block_share(mask: np.ndarray, factor: int) -> np.ndarray:
+    """Share of True cells in each `factor` x `factor` block (edges padded with False)."""
+    rows, cols = mask.shape
+    padded = np.zeros((math.ceil(rows / factor) * factor, math.ceil(cols / factor) * factor))
+    padded[:rows, :cols] = mask
+    return padded.reshape(padded.shape[0] // factor, factor, -1, factor).mean(axis=(1, 3))
+
+
+def _draw_footprints(ax: Axes, hm: HeightMap, cameras: Sequence[CameraView]) -> None:
+    rows, cols = hm.shape
+    factor = max(1, math.ceil(max(rows, cols) / FOOTPRINT_CELLS))
+    for k, camera in enumerate(cameras):
+        colour = CAMERA_COLOURS[k % len(CAMERA_COLOURS)]
+        if camera.footprint.shape == hm.shape and camera.footprint.any():
+            coarse = _block_share(camera.footprint, factor)
+            xs = hm.origin[0] + (np.arange(coarse.shape[1]) + 0.5) * factor * hm.step
+            ys = hm.origin[1] + (np.arange(coarse.shape[0]) + 0.5) * factor * hm.step
+            ax.contour(
+                xs, ys, coarse, levels=[0.5], colors=[colour], linewidths=1.3, linestyles="--"
+            )
+        x, y, _z = camera.position
+        ax.plot(
+            [x], [y], marker="o", markersize=9, color=colour, markeredgecolor="black", clip_on=False
+        )
+        ax.annotate(
+            camera.serial,
+            (x, y),
+            xytext=(6, 6),
+            textcoords="offset points",
+            fontsize=8,
+            color="black",
+            annotation_clip=False,
+        )
+
+
+def _draw_piles(ax: Axes, piles: Sequence[dict[str, Any]]) -> None:
+    from matplotlib.patches import Circle
+
+    for pile in piles:
+        peak = pile.get("peak") or pile.get("centroid") or {}
+        if "x" not in peak or "y" not in peak:
+            continue
+        radius = math.sqrt(max(float(pile.get("footprint_m2") or 0.0), 0.0) / math.pi)
+        ax.add_patch(Circle((peak["x"], peak["y"]), radius, fill=False, ec="white", lw=1.2, ls=":"))
+        ax.plot([peak["x"]], [peak["y"]], marker="+", markersize=10, color="white")
+        ax.annotate(
+            f"#{pile.get('id', '?')}",
+            (peak["x"], peak["y"]),
+            xytext=(5, -12),
+            textcoords="offset points",
+            fontsize=8,
+            color="white",
+        )
+
+
+def map_png(
+    hm: HeightMap,
+    floor_z: float,
+    region: np.ndarray,
+    *,
+    piles: Sequence[dict[str, Any]] = (),
+    cameras: Sequence[CameraView] = (),
+    robots: Sequence[dict[str, Any]] = (),
+) -> tuple[bytes, MapLayout]:
+    """The height map as a PNG, with walls, piles, cameras, footprints (and live robots)."""
+    from matplotlib.patches import Circle, Polygon
+
+    layout = layout_of(hm, floor_z, [c.position[:2] for c in cameras])
+    fig, ax = _map_figure(hm, layout)
+    if len(region) >= 3:
+        ax.add_patch(Polygon(np.asarray(region), closed=True, fill=False, ec="#202020", lw=2.5))
+    _draw_footprints(ax, hm, cameras)
+    _draw_piles(ax, piles)
+    for robot in robots:
+        ax.add_patch(
+            Circle(
+                (robot["x"], robot["y"]),
+                float(robot.get("radius_m") or 0.3),
+                fill=False,
+                ec="red",
+                lw=2,
+            )
+        )
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100, pil_kwargs=PNG_OPTIONS)
+    return buffer.getvalue(), layout
+
+
+def history_svg(records: Sequence[ScanRecord], bulk_density: float | None, span: str) -> str:
+    """Volume over time (mass on the right axis when the density is known) as SVG: one
+    marker per scan, valid ones in group `history-valid`, invalid ones hollow in
+    `history-invalid`, so a reader can count them."""
+    import matplotlib.dates as mdates
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 2.8), dpi=100, layout="constrained")
+    ax = fig.add_subplot()
+    if records:
+        times = mdates.date2num([r.captured_at for r in records])
+        volumes = np.array([r.volume_m3 for r in records], dtype=float)
+        valid = np.array([r.valid for r in records], dtype=bool)
+        ax.plot(times, volumes, "-", color="#7f7f7f", lw=1)
+        ax.plot(times[valid], volumes[valid], "o", color="#1f77b4", ms=5, gid="history-valid")
+        ax.plot(
+            times[~valid],
+            volumes[~valid],
+            "o",
+            mfc="none",
+            color="#d62728",
+            ms=6,
+            gid="history-invalid",
+            label="invalid",
+        )
+        ax.xaxis_date()
+        locator = mdates.AutoDateLocator()
+        ax.xaxis.set_major_locator(locator)
+        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))
+        if not valid.all():
+            ax.legend(loc="best", fontsize=8)
+    else:
+        ax.text(
+            0.5,
+            0.5,
+            f"no scan with a volume ({span})",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+        )
+    ax.set_ylabel("volume (m³)")
+    ax.grid(True, alpha=0.3)
+    if bulk_density:
+        rho = float(bulk_density)
+
+        def to_mass(volume: Any) -> Any:
+            return np.asarray(volume) * rho
+
+        def to_volume(mass: Any) -> Any:
+            return np.asarray(mass) / rho
+
+        ax.secondary_yaxis("right", functions=(to_mass, to_volume)).set_ylabel("mass (t)")
+    buffer = io.StringIO()
+    fig.savefig(buffer, format="svg", metadata={"Date": None})
+    return buffer.getvalue()

@@ -1,0 +1,198 @@
+// The operator's page: read-only. State arrives as server-sent events (api/events); pictures
+// are drawn by the agent (matplotlib) and only fetched here when the scan they show changes.
+"use strict";
+const $ = (id) => document.getElementById(id);
+let shownScan = null;
+let span = "week";
+let liveCount = 0;
+
+function fixed(value, digits) {
+  return value === null || value === undefined ? "–" : Number(value).toFixed(digits);
+}
+
+function text(id, value) { $(id).textContent = value; }
+
+function cell(row, value, cls) {
+  const td = row.insertCell();
+  td.textContent = value === null || value === undefined ? "–" : String(value);
+  if (cls) td.className = cls;
+  return td;
+}
+
+function link(row, href, label) {
+  const a = document.createElement("a");
+  a.href = href; a.textContent = label;
+  return a;
+}
+
+async function getJSON(url) {
+  const response = await fetch(url, { credentials: "same-origin" });
+  if (!response.ok) throw new Error(`${url}: ${response.status}`);
+  return response.json();
+}
+
+function showLatest(latest) {
+  $("no-scan").hidden = latest !== null;
+  $("figures").hidden = latest === null;
+  if (latest === null) return;
+  const p = latest.published;
+  const d = latest.details;
+  const volume = $("volume");
+  volume.textContent = fixed(p.volume_m3, 3);
+  volume.dataset.published = JSON.stringify(p.volume_m3);
+  volume.title = `published on P/volume: ${p.volume_m3} m³`;
+  const mass = $("mass");
+  mass.textContent = fixed(p.mass_t, 3);
+  mass.dataset.published = JSON.stringify(p.mass_t);
+  const level = p.level || {};
+  text("level", `${fixed(level.min, 3)} / ${fixed(level.mean, 3)} / ${fixed(level.max, 3)}`);
+  $("coverage").textContent = fixed(p.coverage * 100, 1);
+  $("coverage").dataset.published = JSON.stringify(p.coverage);
+  const valid = $("valid");
+  valid.textContent = (p.valid ? "valid" : `invalid: ${d.invalid_reason || "?"}`) + (p.degraded ? " · degraded" : "");
+  valid.className = p.valid && !p.degraded ? "good" : "bad";
+  valid.dataset.valid = String(p.valid);
+  valid.dataset.degraded = String(p.degraded);
+  text("captured-at", p.captured_at);
+  text("scan-id", p.scan_id);
+  $("report-link").href = `scans/${encodeURIComponent(p.scan_id)}/report.html`;
+  $("export-link").href = `scans/${encodeURIComponent(p.scan_id)}/export.tar.gz`;
+  for (const [key, id, show] of [["fill_ratio", "fill", (v) => `${fixed(v * 100, 1)} %`],
+                                  ["headspace_m", "headspace", (v) => fixed(v, 3)],
+                                  ["capacity_m3", "capacity", (v) => fixed(v, 3)]]) {
+    $(`${id}-row`).hidden = !(key in d);
+    if (key in d) text(id, show(d[key]));
+  }
+  const residuals = $("residuals").tBodies[0];
+  residuals.replaceChildren();
+  for (const [pair, metres] of Object.entries(d.registration_residual_m || {})) {
+    const row = residuals.insertRow();
+    cell(row, pair);
+    cell(row, metres === null ? null : `${fixed(metres * 1000, 1)} mm`);
+  }
+}
+
+let cameraScan = {};
+function showCameras(state) {
+  const body = $("cameras").tBodies[0];
+  body.replaceChildren();
+  const latest = state.latest;
+  const used = latest ? (latest.details.cameras || {}).used || [] : [];
+  for (const camera of state.cameras || []) {
+    const row = body.insertRow();
+    const seen = cameraScan[camera.serial] || {};
+    cell(row, camera.serial);
+    cell(row, camera.state, camera.state === "ok" ? "good" : camera.state === "failed" ? "bad" : "");
+    cell(row, used.includes(camera.serial) ? latest.published.captured_at : null);
+    cell(row, seen.points);
+    cell(row, seen.coverage === undefined ? null : `${fixed(seen.coverage * 100, 1)} %`);
+    cell(row, seen.gravity_deg === undefined || seen.gravity_deg === null ? null : `${fixed(seen.gravity_deg, 2)}°`);
+    cell(row, camera.error);
+  }
+}
+
+function showAlarms(state) {
+  const body = $("alarms").tBodies[0];
+  body.replaceChildren();
+  for (const alarm of Object.values(state.alarms || {})) {
+    const row = body.insertRow();
+    cell(row, alarm.type);
+    cell(row, alarm.state, alarm.state === "raised" ? "raised" : "");
+    cell(row, alarm.severity);
+    cell(row, alarm.scan_id);
+    cell(row, alarm.message);
+  }
+  const events = $("events");
+  events.replaceChildren();
+  for (const event of (state.events || []).slice().reverse()) {
+    const li = document.createElement("li");
+    li.textContent = `${event.ts} ${event.type} ${event.state} (${event.severity}): ${event.message}`;
+    if (event.state === "raised") li.className = "raised";
+    events.appendChild(li);
+  }
+  if (!events.children.length) events.innerHTML = "<li>none since the agent started</li>";
+}
+
+async function showMap(scanId) {
+  const layout = await getJSON(`api/map/${encodeURIComponent(scanId)}.json`);
+  const img = $("map");
+  img.dataset.scanId = scanId;
+  img.src = `api/map/${encodeURIComponent(scanId)}.png`;
+  text("map-scan", scanId);
+  text("legend-min", `${fixed(layout.vmin, 2)} m`);
+  text("legend-max", `${fixed(layout.vmax, 2)} m`);
+  $("legend-bar").style.background = `linear-gradient(to right, ${layout.legend.join(", ")})`;
+  cameraScan = Object.fromEntries((layout.cameras || []).map((c) => [c.serial, c]));
+}
+
+async function showHistory() {
+  const response = await fetch(`api/history.svg?range=${span}`, { credentials: "same-origin" });
+  if (!response.ok) return;
+  const history = $("history");
+  history.innerHTML = await response.text();
+  history.dataset.range = span;
+  for (const button of document.querySelectorAll("[data-range]")) {
+    button.classList.toggle("on", button.dataset.range === span);
+  }
+}
+
+async function showScans() {
+  const scans = await getJSON("api/scans");
+  const body = $("scans").tBodies[0];
+  body.replaceChildren();
+  for (const scan of scans) {
+    const row = body.insertRow();
+    row.dataset.scanId = scan.scan_id;
+    cell(row, scan.scan_id);
+    cell(row, scan.captured_at);
+    cell(row, fixed(scan.volume_m3, 3));
+    cell(row, fixed(scan.mass_t, 3));
+    cell(row, !scan.has_result ? "no result" : scan.valid ? "valid" : "invalid", scan.valid ? "good" : "bad");
+    const links = row.insertCell();
+    if (scan.has_result) {
+      links.appendChild(link(row, `scans/${encodeURIComponent(scan.scan_id)}/report.html`, "report"));
+      links.append(" · ");
+    }
+    links.appendChild(link(row, `scans/${encodeURIComponent(scan.scan_id)}/export.tar.gz`, "export"));
+  }
+}
+
+async function apply(state) {
+  text("silo-id", state.silo_id);
+  showLatest(state.latest);
+  showAlarms(state);
+  const scanId = state.latest ? state.latest.published.scan_id : null;
+  if (scanId !== shownScan) {
+    shownScan = scanId;
+    if (scanId !== null) await showMap(scanId);
+    await Promise.all([showHistory(), showScans()]);
+  }
+  showCameras(state);
+  showLive(state.live || {});
+  document.body.dataset.scanId = scanId || "";
+}
+
+function showLive(live) {
+  const fresh = live.time && Date.now() - Date.parse(live.time) < 10000;
+  $("live-section").hidden = !live.count;
+  $("live-badge").hidden = !fresh;
+  if (live.count && live.count !== liveCount) {
+    liveCount = live.count;
+    $("live-map").src = `api/live.png?n=${live.count}`;
+    text("live-info", `${live.session_id || ""} · map ${live.sequence ?? ""} · ${live.time || ""}`);
+  }
+}
+
+for (const button of document.querySelectorAll("[data-range]")) {
+  button.addEventListener("click", () => { span = button.dataset.range; showHistory(); });
+}
+
+function connected(ok) {
+  const badge = $("connection");
+  badge.textContent = ok ? "connected" : "reconnecting…";
+  badge.classList.toggle("ok", ok);
+}
+
+const events = new EventSource("api/events");
+events.addEventListener("state", (e) => { connected(true); apply(JSON.parse(e.data)); });
+events.onerror = () => connected(false);

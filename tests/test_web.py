@@ -1,0 +1,345 @@
+"""The operator's page and `silo-agent report`, with real parts: `silo-agent run` as a process on
+simulated cameras and the test's own mosquitto, read by a real headless chromium (selenium),
+its figures compared with what the agent published on the broker (`P/volume`, `P/heightmap`).
+
+`SILO_AGENT_DOCS_SCREENSHOTS=1` also writes the page's screenshot into docs/images/ (how the
+screenshots in docs/web.md were made)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import socket
+import subprocess
+import sys
+import tarfile
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from silo_agent.telemetry.heightmap_codec import decode_heightmap
+from tests.support.agent import BASE, Daemon, write_config
+from tests.support.cli import run_cli
+from tests.support.mqtt_broker import free_port
+
+TOKEN = "s3cret-token-for-the-test"
+DOCS_IMAGES = Path(__file__).resolve().parent.parent / "docs" / "images"
+
+
+def fetch(url: str, token: str | None = None) -> tuple[int, bytes]:
+    request = urllib.request.Request(url)
+    if token is not None:
+        request.add_header("Authorization", f"Bearer {token}")
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read()
+
+
+def wait_js(driver, script: str, timeout: float = 60.0):
+    """Poll a JS expression in the page until it is truthy; its value."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = driver.execute_script(f"return ({script});")
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"page never satisfied {script}: {driver.page_source[-2000:]}")
+
+
+PIXELS_JS = """
+const img = document.getElementById(arguments[0]);
+const canvas = document.createElement('canvas');
+canvas.width = img.naturalWidth; canvas.height = img.naturalHeight;
+const ctx = canvas.getContext('2d');
+ctx.drawImage(img, 0, 0);
+const data = ctx.getImageData(0, 0, canvas.width, canvas.height).data;
+return arguments[1].map(([x, y]) => {
+  const at = (y * canvas.width + x) * 4;
+  return Array.from(data.slice(at, at + 3));
+});
+"""
+
+
+def expected_colours(hm, layout: dict, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """What the page promises for these cells (docs/web.md): viridis of the height between
+    vmin and vmax; a filled cell blended towards white; computed here from the broker's map."""
+    from matplotlib import colormaps
+
+    heights = hm.heights[rows, cols]
+    scaled = np.clip((heights - layout["vmin"]) / (layout["vmax"] - layout["vmin"]), 0, 1)
+    rgb = colormaps[layout["colormap"]](scaled)[:, :3] * 255.0
+    filled = ~hm.observed[rows, cols]
+    rgb[filled] += (255.0 - rgb[filled]) * layout["filled_blend"]
+    return rgb
+
+
+@pytest.mark.slow
+def test_page_shows_what_the_agent_published(tmp_path: Path, broker, collector_factory, browser):
+    token_file = tmp_path / "web.token"
+    token_file.write_text(TOKEN + "\n")
+    port = free_port()
+    config = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        simulation={"sequence": ["piles", "cone"]},
+        web={"enabled": True, "port": port, "token_file": str(token_file)},
+    )
+    col = collector_factory(broker, [f"{BASE}/#"])
+    agent = Daemon(config, tmp_path)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        agent.wait_log("scan finished")
+        col.publish(f"{BASE}/cmd/scan", b'{"request_id": "second"}')
+        agent.wait_log("scan finished", 2)
+        col.wait_topic(f"{BASE}/volume", 2)
+        volume = json.loads(col.on(f"{BASE}/volume")[-1].payload)
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/heightmap" and volume["scan_id"].encode() in m.payload
+                for m in ms
+            )
+        )
+        hm = decode_heightmap(col.on(f"{BASE}/heightmap")[-1].payload)
+
+        # --- without the token: refused, the browser included
+        for path in (
+            "/",
+            "/api/state",
+            "/api/map/x.png",
+            f"/scans/{volume['scan_id']}/report.html",
+        ):
+            status, body = fetch(base + path)
+            assert status == 401, path
+        assert fetch(base + "/api/state", "wrong")[0] == 401
+        browser.get(base + "/")
+        assert "401" in browser.find_element("tag name", "body").text
+
+        # --- the first visit with ?token= sets a cookie; the page then works without it
+        browser.get(f"{base}/?token={TOKEN}")
+        assert "token" not in browser.current_url
+        shown = wait_js(browser, "document.getElementById('volume').dataset.published")
+        assert json.loads(shown) == volume["volume_m3"]
+        assert browser.find_element("id", "volume").text == f"{volume['volume_m3']:.3f}"
+        assert (
+            json.loads(browser.find_element("id", "mass").get_attribute("data-published"))
+            == (volume["mass_t"])
+        )
+        assert browser.find_element("id", "scan-id").text == volume["scan_id"]
+        assert browser.find_element("id", "captured-at").text == volume["captured_at"]
+        coverage = browser.find_element("id", "coverage")
+        assert json.loads(coverage.get_attribute("data-published")) == volume["coverage"]
+        level = volume["level"]
+        assert browser.find_element("id", "level").text == (
+            f"{level['min']:.3f} / {level['mean']:.3f} / {level['max']:.3f}"
+        )
+        assert browser.find_element("id", "valid").get_attribute("data-valid") == "true"
+
+        # --- the height map picture is the published map: colours at cells across the grid
+        wait_js(
+            browser,
+            f"document.getElementById('map').dataset.scanId === '{volume['scan_id']}'"
+            " && document.getElementById('map').complete"
+            " && document.getElementById('map').naturalWidth > 0",
+        )
+        status, body = fetch(f"{base}/api/map/{volume['scan_id']}.json", TOKEN)
+        layout = json.loads(body)
+        assert (layout["rows"], layout["cols"]) == hm.shape
+        assert layout["origin"] == pytest.approx(hm.origin) and layout["step"] == hm.step
+        rng = np.random.default_rng(3)
+        rows = rng.integers(2, hm.shape[0] - 2, 400)
+        cols = rng.integers(2, hm.shape[1] - 2, 400)
+        s, m = layout["cell_px"], layout["margin_px"]
+        xs = m + cols * s + s // 2
+        ys = layout["height_px"] - m - rows * s - s // 2 - 1
+        pixels = np.array(
+            browser.execute_script(
+                PIXELS_JS, "map", [[int(x), int(y)] for x, y in zip(xs, ys, strict=True)]
+            )
+        )
+        expected = expected_colours(hm, layout, rows, cols)
+        close = np.abs(pixels - expected).max(axis=1) <= 6  # the map's mm rounding: a LUT step
+        observed = hm.observed[rows, cols]
+        assert observed.any() and (~observed).any()  # both kinds of cell were checked
+        # overlays (walls, footprints, piles, cameras) cover a few of the sampled pixels
+        assert close[observed].mean() > 0.9 and close[~observed].mean() > 0.9, (
+            close[observed].mean(),
+            close[~observed].mean(),
+        )
+        # and it is not any picture: the same pixels against another row order fail
+        flipped = expected_colours(hm, layout, hm.shape[0] - 1 - rows, cols)
+        assert (np.abs(pixels - flipped).max(axis=1) <= 6).mean() < 0.6
+
+        # --- history: one point per scan with a volume; the scan list links reports
+        wait_js(browser, "document.querySelector('#history svg') !== null")
+        points = browser.execute_script(
+            "return document.querySelectorAll('#history-valid use, #history-invalid use').length"
+        )
+        assert points == 2
+        for span in ("day", "all"):
+            browser.find_element("css selector", f"button[data-range='{span}']").click()
+            wait_js(browser, f"document.getElementById('history').dataset.range === '{span}'")
+            assert (
+                browser.execute_script(
+                    "return document.querySelectorAll('#history-valid use').length"
+                )
+                == 2
+            )
+        rows_shown = browser.find_elements("css selector", "#scans tbody tr")
+        assert len(rows_shown) == 2
+        assert rows_shown[0].get_attribute("data-scan-id") == volume["scan_id"]
+        cameras = wait_js(
+            browser,
+            "document.querySelectorAll('#cameras tbody tr').length === 2"
+            " && document.querySelector('#cameras tbody tr td:nth-child(4)').textContent !== '–'",
+        )
+        assert cameras
+        assert "sim-A2" in browser.find_element("id", "cameras").text
+        assert "sim-A2|sim-A6" in browser.find_element("id", "residuals").text
+        assert "collapse" in browser.find_element("id", "alarms").text
+        if os.environ.get("SILO_AGENT_DOCS_SCREENSHOTS"):
+            DOCS_IMAGES.mkdir(parents=True, exist_ok=True)
+            browser.save_screenshot(str(DOCS_IMAGES / "web-page.png"))
+
+        # --- the report the page links, in the browser; the export is the scan directory
+        link = browser.find_element("id", "report-link").get_attribute("href")
+        browser.get(link)
+        exact = browser.find_element("css selector", "#figures td").get_attribute("data-exact")
+        assert json.loads(exact) == volume["volume_m3"]
+        assert browser.execute_script("return document.getElementById('map').naturalWidth") > 0
+        status, body = fetch(f"{base}/scans/{volume['scan_id']}/export.tar.gz", TOKEN)
+        assert status == 200
+        with tarfile.open(fileobj=io.BytesIO(body)) as tar:
+            assert f"{volume['scan_id']}/scan.json" in tar.getnames()
+
+        # --- URLs that leave the cache or name no scan: 404, never a file, never a traceback
+        for path in (
+            "/scans/..%2F..%2Fagent.toml/report.html",
+            "/scans/../agent.toml",
+            "/scans/%2e%2e/export.tar.gz",
+            "/scans/silo-d-20000101T000000Z/report.html",
+            "/api/map/..%2Fagent.toml.png",
+            "/api/map/nope.json",
+            "/static/..%2F..%2Fconfig.py",
+            "/static/nope.js",
+            "/api/history.svg?range=century",
+        ):
+            status, body = fetch(base + path, TOKEN)
+            assert status in (404, 400), (path, status)
+            assert b"Traceback" not in body and b"[silo]" not in body, path
+
+        # --- a live session: the page's live map updates
+        browser.get(f"{base}/")
+        wait_js(browser, "document.getElementById('volume').dataset.published")
+        col.publish(f"{BASE}/cmd/live", b'{"on": true, "rate_hz": 2, "duration_s": 30}')
+        first = wait_js(browser, "document.getElementById('live-map').getAttribute('src')")
+        wait_js(
+            browser,
+            f"document.getElementById('live-map').getAttribute('src') !== '{first}'"
+            " && document.getElementById('live-map').naturalWidth > 0",
+        )
+        assert not browser.find_element("id", "live-section").get_attribute("hidden")
+        col.publish(f"{BASE}/cmd/live", b'{"on": false}')
+    finally:
+        agent.kill()
+
+
+def test_bad_web_settings_stop_the_agent_before_it_starts(tmp_path: Path) -> None:
+    def config(**web: object) -> Path:
+        return write_config(tmp_path / "agent.toml", free_port(), tmp_path, web=web)
+
+    done = run_cli("check-config", str(config(enabled=True, host="0.0.0.0")))
+    assert done.returncode == 78
+    assert "web.token_file" in done.stderr and "0.0.0.0" in done.stderr
+    missing = tmp_path / "missing.token"
+    done = run_cli("check-config", str(config(enabled=True, token_file=str(missing))))
+    assert done.returncode == 78 and f"web.token_file: {missing} does not exist" in done.stderr
+    empty = tmp_path / "empty.token"
+    empty.write_text("\n")
+    done = run_cli("check-config", str(config(enabled=True, token_file=str(empty))))
+    assert done.returncode == 78 and "web.token_file" in done.stderr and "empty" in done.stderr
+    unreadable = tmp_path / "dir.token"
+    unreadable.mkdir()
+    done = run_cli("run", "--config", str(config(enabled=True, token_file=str(unreadable))))
+    assert done.returncode == 78 and "not a regular file" in done.stderr
+    # off: none of it is looked at
+    assert run_cli("check-config", str(config(enabled=False, host="0.0.0.0"))).returncode == 0
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = run_cli("run", "--config", str(config(enabled=True, port=port)))
+    assert done.returncode == 78
+    assert f"web: cannot listen on 127.0.0.1:{port}" in done.stderr and "web.port" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not (tmp_path / "outbox.sqlite").exists()  # nothing started
+
+
+def test_report_of_a_simulated_scan_matches_process(tmp_path: Path, browser) -> None:
+    from PIL import Image
+
+    scan = tmp_path / "scan"
+    done = run_cli(
+        "simulate",
+        "--scene",
+        "piles",
+        "--views",
+        "A1,A5",
+        "--grid-step",
+        "0.04",
+        "--out",
+        str(scan),
+    )
+    assert done.returncode == 0, done.stderr
+    processed = json.loads(run_cli("process", str(scan), "--json").stdout)
+    html, png = tmp_path / "report.html", tmp_path / "report.png"
+    assert run_cli("report", str(scan), "--out", str(html)).returncode == 0
+    assert run_cli("report", str(scan), "--out", str(png)).returncode == 0
+
+    browser.get(html.as_uri())
+    figures = {
+        row.find_element("tag name", "th").text: row.find_element("tag name", "td")
+        for row in browser.find_elements("css selector", "#figures tr")
+    }
+    assert json.loads(figures["volume"].get_attribute("data-exact")) == processed["volume_m3"]
+    assert json.loads(figures["mass"].get_attribute("data-exact")) == processed["mass_t"]
+    assert json.loads(figures["coverage"].get_attribute("data-exact")) == processed["coverage"]
+    assert figures["volume"].text == f"{processed['volume_m3']:.3f} m³"
+    assert browser.execute_script("return document.getElementById('map').naturalWidth") > 100
+    piles = browser.find_elements("css selector", "#piles tbody tr")
+    assert len(piles) == len(processed["piles"]) > 0
+    cameras = browser.find_element("id", "cameras").text
+    assert "sim-A1" in cameras and "sim-A5" in cameras
+    assert "sim-A1|sim-A5" in browser.find_element("id", "residuals").text
+
+    with Image.open(png) as image:
+        image.load()
+        assert image.size[0] > 500 and image.size[1] > 300
+        published = json.loads(image.info["silo-agent:published"])
+    assert published["volume_m3"] == processed["volume_m3"]
+    assert published["mass_t"] == processed["mass_t"]
+    assert published["level"] == processed["level"]
+
+    assert run_cli("report", str(scan), "--out", str(tmp_path / "r.pdf")).returncode == 2
+    bad = run_cli("report", str(tmp_path / "nope"), "--out", str(html))
+    assert bad.returncode == 78 and "Traceback" not in bad.stderr
+
+
+def test_the_scan_path_loads_nothing_of_the_page() -> None:
+    """The daemon imports the web side only when [web] is on; `process` never."""
+    code = (
+        "import sys, silo_agent.agent, silo_agent.pipeline, silo_agent.cli\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('matplotlib', 'starlette', 'uvicorn', 'anyio') or m.startswith('silo_agent.web')))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
