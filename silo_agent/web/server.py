@@ -100,6 +100,12 @@ def _nice_thread() -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), RENDER_NICENESS)
 
 
+def _warm_up() -> None:
+    """Import what drawing needs, in the picture thread, before the first page asks."""
+    import matplotlib.backends.backend_agg
+    import matplotlib.figure  # noqa: F401
+
+
 class _Token:
     """ASGI middleware: 401 without the token; `?token=` sets the cookie and redirects."""
 
@@ -450,6 +456,7 @@ class WebServer:
             target=self._server.run, kwargs={"sockets": [self.sock]}, name="web", daemon=True
         )
         self._thread.start()
+        self._pages.pool.submit(_warm_up)  # matplotlib's import (~1 s) off the first request
         log.info(
             "web page serving",
             url=f"http://{self.cfg.host}:{self.port}/",
