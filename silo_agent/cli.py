@@ -411,13 +411,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     from silo_agent.service.state_lock import StateLocked
 
     config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
-    web = None
+    companions = []
     if config.web.enabled:  # the port bound now: one in use is a 78 before anything starts
         from silo_agent.web.server import WebServer
 
-        web = WebServer.bind(config.web)
+        companions.append(WebServer.bind(config.web))
     try:
-        agent = Agent(args.config, config, max_scans=args.scans, web=web)
+        agent = Agent(args.config, config, max_scans=args.scans, companions=companions)
     except StateLocked as exc:
         return _fail(str(exc), FAILURE)
     status = agent.run()

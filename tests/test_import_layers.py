@@ -11,6 +11,7 @@ package can be read, tested and replaced from the bottom up.
     capture storage telemetry       the edges: cameras, the audit cache, MQTT and Prometheus
     live            live height maps for robots (frames in, maps out through telemetry's codec)
     service         orchestration: the scan path, the pipeline, the daemon, batch, live control
+    web             the operator's page (a companion of the daemon) and reports
     cli             the command line
 
 Every import counts: inside functions (still a dependency when it runs) and under
@@ -140,8 +141,9 @@ LAYERS: dict[str, int] = {
     "silo_agent.telemetry": 7,
     "silo_agent.live": 8,
     "silo_agent.service": 9,
-    "silo_agent.cli": 10,
-    "silo_agent.__main__": 11,
+    "silo_agent.web": 10,
+    "silo_agent.cli": 11,
+    "silo_agent.__main__": 12,
 }
 
 

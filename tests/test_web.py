@@ -349,7 +349,7 @@ def test_report_of_a_simulated_scan_matches_process(tmp_path: Path, browser) -> 
 def test_the_scan_path_loads_nothing_of_the_page() -> None:
     """The daemon imports the web side only when [web] is on; `process` never."""
     code = (
-        "import sys, silo_agent.agent, silo_agent.pipeline, silo_agent.cli\n"
+        "import sys, silo_agent.service.daemon, silo_agent.service.pipeline, silo_agent.cli\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in "
         "('matplotlib', 'starlette', 'uvicorn', 'anyio') or m.startswith('silo_agent.web')))"
     )

@@ -12,11 +12,12 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING
+from typing import Protocol
 from zoneinfo import ZoneInfo
 
 import structlog
@@ -33,14 +34,20 @@ from silo_agent.storage.audit import AuditCache
 from silo_agent.telemetry.client import CommandRejected, ScanCommand, Telemetry
 from silo_agent.telemetry.prometheus import Metrics
 
-if TYPE_CHECKING:
-    from silo_agent.web.server import Sources, WebServer
-
 log = structlog.get_logger(__name__)
 
 LOOP_S = 1.0  # longest sleep of the main loop without a watchdog
 THREAD_RESTARTS = 3  # restarts of one internal thread within RESTART_WINDOW_S, then exit 1
 RESTART_WINDOW_S = 600.0
+
+
+class Companion(Protocol):
+    """Something served beside the agent for its whole run, e.g. the operator's page
+    (silo_agent/web): started once MQTT runs, before the first scan; stopped at shutdown."""
+
+    def start(self, agent: Agent) -> None: ...
+
+    def stop(self) -> None: ...
 
 
 @dataclass
@@ -75,9 +82,9 @@ class Agent:
         config: Config,
         max_scans: int | None = None,
         notifier: Notifier | None = None,
-        web: WebServer | None = None,
+        companions: Sequence[Companion] = (),
     ) -> None:
-        """`web`: the operator's page, bound already (`WebServer.bind`); served from start."""
+        """`companions`: served beside the agent (ready to start: ports bound, files read)."""
         self.config_path = config_path
         self.config = config
         self.max_scans = max_scans
@@ -104,16 +111,7 @@ class Agent:
         self._deaths: dict[str, list[float]] = {}  # internal thread -> when it died
         self._status = OK
         self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
-        self.web = web
-
-    def _web_sources(self) -> Sources:
-        """What the page reads: the audit cache, the config, the node's state, live maps."""
-        from silo_agent.web.archive import Archive
-        from silo_agent.web.server import LiveFeed, Sources
-
-        feed = LiveFeed()
-        self.telemetry.watch_live(feed.put)
-        return Sources(Archive(self.cache), lambda: self.config, self.telemetry.snapshot, feed)
+        self.companions = list(companions)
 
     def _restore_result(self) -> None:
         """The last published result into the Sparkplug node. A host applies the NDATA the
@@ -372,8 +370,8 @@ class Agent:
         self.pipeline.clear_switched_off_alarms()  # e.g. low_volume_m3 removed while stopped
         self.telemetry.on_live_command(self.live.requested)
         self.telemetry.start()
-        if self.web is not None:
-            self.web.start(self._web_sources())
+        for companion in self.companions:
+            companion.start(self)
         self._start_scheduler()
         if config.schedule.scan_at_start:
             with self._lock:
@@ -467,8 +465,8 @@ class Agent:
             self.telemetry.finish_scan_request(command, error="the agent stopped")
         self.telemetry.stop()  # flushes what it can within mqtt.shutdown_timeout_s, `stopped`
         self.metrics.close()
-        if self.web is not None:
-            self.web.stop()
+        for companion in self.companions:
+            companion.stop()
         self.notifier.close()
         self.state_lock.release()
         log.info("agent stopped", scans=self._done, status=self._status)

@@ -19,12 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from silo_agent.audit import RESULT, AuditCache, read_heightmap
 from silo_agent.config import Config
-from silo_agent.drift import gravity_of
-from silo_agent.geometry import gravity_angle_deg
-from silo_agent.heightmap import HeightMap
-from silo_agent.scan import MANIFEST, CameraCloud, ScanError, read_scan
+from silo_agent.grid.geometry import gravity_angle_deg
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.scan import MANIFEST, CameraCloud, ScanError, gravity_of, read_scan
+from silo_agent.storage.audit import RESULT, AuditCache, read_heightmap
 
 KEPT_VIEWS = 4  # scans whose layers stay in memory: the latest and a few an operator opened
 HISTORY_RANGES = {"day": timedelta(days=1), "week": timedelta(days=7), "all": None}
@@ -131,7 +130,7 @@ def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
     """A scan directory as the page and the report show it: the kept result and height map
     when the agent kept them, else the scan processed now as `process` would (with `config`'s
     settings if given). Raises ScanError for a bad directory."""
-    from silo_agent.scan_service import CONFIG_KEY
+    from silo_agent.service.scan_path import CONFIG_KEY
 
     directory = Path(directory)
     scan = read_scan(directory)
@@ -139,7 +138,7 @@ def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
     heightmap = read_heightmap(directory) if summary is not None else None
     kept = summary is not None and config is None
     if not kept:
-        from silo_agent.scan_service import process_directory
+        from silo_agent.service.scan_path import process_directory
 
         scan, result, summary = process_directory(directory, config)
         heightmap = result.reconstruction.heightmap

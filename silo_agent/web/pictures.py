@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from silo_agent.heightmap import HeightMap
+from silo_agent.grid.heightmap import HeightMap
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

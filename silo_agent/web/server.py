@@ -28,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 from urllib.parse import parse_qsl, urlencode
 
 import structlog
@@ -51,6 +51,9 @@ from silo_agent.config import Config, ConfigError, WebConfig, read_token
 from silo_agent.telemetry.heightmap_codec import HeightMapFormatError, decode_live_heightmap
 from silo_agent.web.archive import HISTORY_RANGES, Archive, ScanNotFound
 from silo_agent.web.pictures import MapLayout, history_svg, legend, map_png
+
+if TYPE_CHECKING:
+    from silo_agent.service.daemon import Agent
 
 log = structlog.get_logger(__name__)
 
@@ -101,9 +104,9 @@ def _nice_thread() -> None:
 
 
 def _warm_up() -> None:
-    """Import what drawing needs, in the picture thread, before the first page asks."""
-    import matplotlib.backends.backend_agg
-    import matplotlib.figure  # noqa: F401
+    """Import what drawing needs and load its fonts, in the picture thread, before the first
+    page asks (about a second on a gateway core)."""
+    history_svg([], None, "all")
 
 
 class _Token:
@@ -442,7 +445,15 @@ class WebServer:
     def port(self) -> int:
         return int(self.sock.getsockname()[1])
 
-    def start(self, sources: Sources) -> None:
+    def start(self, agent: Agent) -> None:
+        """Serve `agent`'s page: its audit cache, config, node state and live maps."""
+        feed = LiveFeed()
+        agent.telemetry.watch_live(feed.put)
+        self.serve(
+            Sources(Archive(agent.cache), lambda: agent.config, agent.telemetry.snapshot, feed)
+        )
+
+    def serve(self, sources: Sources) -> None:
         app, self._pages = app_for(sources, self.token)
         config = uvicorn.Config(
             app,
