@@ -49,7 +49,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from silo_agent.config import Config, ConfigError, WebConfig, read_token
 from silo_agent.telemetry.heightmap_codec import HeightMapFormatError, decode_live_heightmap
-from silo_agent.web.archive import HISTORY_RANGES, Archive, ScanNotFound
+from silo_agent.web.archive import HISTORY_RANGES, Archive, ScanNotFound, published_volume
 from silo_agent.web.pictures import MapLayout, history_svg, legend, map_png
 
 if TYPE_CHECKING:
@@ -204,8 +204,6 @@ class Pages:
                 summary = archive.summary(latest.scan_id)
             except ScanNotFound:
                 return out
-            from silo_agent.web.archive import published_volume
-
             try:
                 published = published_volume(summary)
             except (KeyError, ValueError, TypeError):
