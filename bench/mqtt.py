@@ -23,6 +23,8 @@ import threading
 import time
 from pathlib import Path
 
+from silo_agent.analysis.summary import ScanSummary
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -41,23 +43,25 @@ BROKER_TUNING = ("set_tcp_nodelay true", "max_queued_messages 20000")
 BASE = f"silo/{SILO}"
 
 
-def summary(k: int) -> dict:
-    return {
-        "scan_id": f"{SILO}-{k:06d}",
-        "captured_at": "2026-11-22T02:00:00.000Z",
-        "volume_m3": 12.3,
-        "mass_t": 9.5,
-        "coverage": 0.9,
-        "grid_step_m": 0.02,
-        "surface": {"min_z": 0.1, "mean_z": 0.9, "max_z": 1.4},
-        "level": {"min": 0.1, "mean": 0.9, "max": 1.4},
-        "valid": True,
-        "invalid_reason": None,
-        "degraded": False,
-        "cameras": {"used": ["a", "b"], "failed": []},
-        "piles": [],
-        "timings": {"capture_s": 4.2, "reconstruct_s": 1.3},
-    }
+def summary(k: int) -> ScanSummary:
+    return ScanSummary.from_json(
+        {
+            "scan_id": f"{SILO}-{k:06d}",
+            "captured_at": "2026-11-22T02:00:00.000Z",
+            "volume_m3": 12.3,
+            "mass_t": 9.5,
+            "coverage": 0.9,
+            "grid_step_m": 0.02,
+            "surface": {"min_z": 0.1, "mean_z": 0.9, "max_z": 1.4},
+            "level": {"min": 0.1, "mean": 0.9, "max": 1.4},
+            "valid": True,
+            "invalid_reason": None,
+            "degraded": False,
+            "cameras": {"used": ["a", "b"], "failed": []},
+            "piles": [],
+            "timings": {"capture_s": 4.2, "reconstruct_s": 1.3},
+        }
+    )
 
 
 class Counter:

@@ -291,7 +291,7 @@ t.append(time.perf_counter())
 analysis = service.overridden(service.settings_of(scan), None, args.grid_step, args.method)
 result = service.analyse_with(scan, analysis, [])
 t.append(time.perf_counter())
-print(json.dumps(service.summarise(result, scan, {}), allow_nan=False))
+print(json.dumps(service.summary_of(result, scan, {}).to_json(), allow_nan=False))
 t.append(time.perf_counter())
 fresh = result.reconstruction.timings_s
 again = time.perf_counter()

@@ -30,6 +30,7 @@ from silo_agent.base.exits import DATA_ERROR as EX_DATAERR
 from silo_agent.base.exits import FAILURE, INTERRUPTED, OK, USAGE
 
 if TYPE_CHECKING:
+    from silo_agent.analysis.summary import ScanSummary
     from silo_agent.capture import CameraFailure
     from silo_agent.config import Config
     from silo_agent.scan import CameraCloud, Scan
@@ -145,7 +146,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         new_scan_id,
         previous_piles,
         settings_of,
-        summarise,
+        summary_of,
     )
     from silo_agent.storage.audit import AuditCache
 
@@ -178,13 +179,13 @@ def cmd_scan(args: argparse.Namespace) -> int:
     except ModelError as exc:
         return _fail(f"{exc}; the raw scan is kept in {directory}", EX_CONFIG)
     timings["reconstruct_s"] = time.perf_counter() - clock
-    summary = summarise(result, scan, timings)
+    summary = summary_of(result, scan, timings)
     try:
         keep_result(directory, summary, result, previous)
     except OSError as exc:
         return _fail(f"cannot keep the result with the scan in {directory}: {exc}", FAILURE)
     if args.json:
-        print(json.dumps({**summary, "scan_dir": str(directory)}, allow_nan=False))
+        print(json.dumps({**summary.to_json(), "scan_dir": str(directory)}, allow_nan=False))
     else:
         print(result.describe())
         print(f"scan written to {directory}" + (" (degraded)" if capture.degraded else ""))
@@ -424,34 +425,32 @@ def cmd_run(args: argparse.Namespace) -> int:
     last = agent.last_outcome
     if args.scans is not None and last is not None and last.summary is not None:
         print(
-            json.dumps(last.summary, allow_nan=False)
+            json.dumps(last.summary.to_json(), allow_nan=False)
             if args.json
             else _describe_summary(last.summary)
         )
     return status
 
 
-def _describe_summary(summary: dict) -> str:
-    volume = summary.get("volume_m3")
-    level = summary.get("level") or {}
-    lines = [f"scan      {summary['scan_id']}  ({summary.get('captured_at')})"]
+def _describe_summary(summary: ScanSummary) -> str:
+    volume, level = summary.volume_m3, summary.level
+    lines = [f"scan      {summary.scan_id}  ({summary.captured_at})"]
     if volume is None:
         lines.append("volume    unknown")
     else:
-        mass = summary.get("mass_t")
+        mass = summary.mass_t
         lines.append(f"volume    {volume:.4f} m³" + (f"   mass {mass:.3f} t" if mass else ""))
-    lines.append(f"coverage  {summary['coverage'] * 100:.1f} % of the region observed")
-    if level:
+    lines.append(f"coverage  {summary.coverage * 100:.1f} % of the region observed")
+    if level is not None:
         lines.append(
-            f"level     min {level['min']:.3f}  mean {level['mean']:.3f}  "
-            f"max {level['max']:.3f} m above floor"
+            f"level     min {level.min:.3f}  mean {level.mean:.3f}  "
+            f"max {level.max:.3f} m above floor"
         )
-    valid = "yes" if summary["valid"] else f"NO: {summary['invalid_reason']}"
+    valid = "yes" if summary.valid else f"NO: {summary.invalid_reason}"
     lines.append(f"valid     {valid}")
-    lines.append(f"piles     {len(summary.get('piles') or [])}")
-    failed = (summary.get("cameras") or {}).get("failed") or []
-    for f in failed:
-        lines.append(f"camera    {f['serial']} failed: {f['error']}")
+    lines.append(f"piles     {len(summary.piles)}")
+    for f in summary.cameras.failed:
+        lines.append(f"camera    {f.serial} failed: {f.error}")
     return "\n".join(lines)
 
 

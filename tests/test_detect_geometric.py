@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from silo_agent.analysis.scan_analysis import ScanAnalysis, analyse
+from silo_agent.analysis.summary import ScanSummary, summarise
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, match_ids
 from silo_agent.detect.geometric import Surface, grid_of
@@ -70,7 +71,7 @@ def test_pile_columns_are_the_volume_s_own(piles_result) -> None:
 
 
 def test_summary_and_description_carry_the_piles(piles_result) -> None:
-    summary = json.loads(json.dumps(piles_result.summary(), allow_nan=False))
+    summary = json.loads(json.dumps(_summary(piles_result).to_json(), allow_nan=False))
     assert summary["robots"] is None  # no model configured
     first = summary["piles"][0]
     assert set(first) == {
@@ -88,23 +89,38 @@ def test_summary_and_description_carry_the_piles(piles_result) -> None:
     assert "piles     4" in text and text.count(" geometric ") == 4
 
 
+def _summary(result: ScanAnalysis) -> ScanSummary:
+    return summarise(result, "2026-11-22T02:00:00Z", [], {"capture_s": 1.0})
+
+
 def test_the_reconstruction_leaves_piles_and_robots_to_the_analysis(piles_result) -> None:
-    """`Reconstruction` is the reconstruction's alone; the analysis puts the detection's keys
+    """`Reconstruction` is the reconstruction's alone; the summary puts the detection's keys
     and lines where result.json, `P/scan` and `process` have always had them."""
     assert isinstance(piles_result, ScanAnalysis)
     assert not {f.name for f in dataclasses.fields(Reconstruction)} & {"piles", "robots"}
-    alone = piles_result.reconstruction.summary()
-    assert "piles" not in alone and "robots" not in alone
-    keys = list(piles_result.summary())
-    at = keys.index("registration_residual_m")
-    assert keys[at - 3 : at + 2] == [
+    assert list(_summary(piles_result).to_json()) == [
+        "scan_id",
+        "method",
+        "volume_m3",
+        "mass_t",
+        "coverage",
+        "grid_step_m",
+        "surface",
+        "level",
+        "valid",
+        "invalid_reason",
+        "cameras",
+        "points",
+        "parameters",
         "timings_s",
         "piles",
         "robots",
         "registration_residual_m",
         "registration_residual",
+        "captured_at",
+        "degraded",
+        "timings",
     ]
-    assert [k for k in keys if k not in ("piles", "robots")] == list(alone)
     lines = piles_result.describe().splitlines()
     at = lines.index("piles     4")
     assert lines[at - 1] == "valid     yes" and lines[-1].startswith("time ")

@@ -18,6 +18,7 @@ from onnx import TensorProto, helper
 from pydantic import ValidationError
 
 from silo_agent.analysis.scan_analysis import analyse
+from silo_agent.analysis.summary import summarise
 from silo_agent.config import Config, DetectionConfig, OnnxDetectionConfig, ReconstructionConfig
 from silo_agent.detect import ModelError
 from silo_agent.detect.onnx_yolo import YoloModel, camera_image, decode, letterbox, nms
@@ -251,7 +252,8 @@ def test_boxes_become_a_pile_and_a_robot_in_the_silo_frame(scan: Scan, model_pat
     assert onnx_pile.peak_height_m == pytest.approx(CONE[3], abs=0.02)
     assert onnx_pile.volume_m3 == pytest.approx(cone_volume, rel=0.03)
     assert by_detector["geometric"].volume_m3 == pytest.approx(cone_volume, rel=0.03)
-    assert result.summary()["robots"][0]["camera"] == "top"
+    summary = summarise(result, "2026-11-22T02:00:00Z", [], {}).to_json()
+    assert summary["robots"][0]["camera"] == "top"
 
 
 def test_a_model_without_class_names_is_refused(tmp_path: Path) -> None:

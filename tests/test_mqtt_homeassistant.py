@@ -48,7 +48,7 @@ def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory, 
             "type": "collapse",
             "state": "raised",
             "severity": "critical",
-            "scan_id": summary()["scan_id"],
+            "scan_id": summary().scan_id,
         }
     )
     vol = col.wait_topic(f"{BASE}/volume")[0].payload
@@ -247,7 +247,7 @@ def test_every_alarm_state_is_retained_at_start_and_sent_again_when_ha_comes_onl
         "type": "collapse",
         "state": "raised",
         "severity": "critical",
-        "scan_id": summary()["scan_id"],
+        "scan_id": summary().scan_id,
         "message": "surface dropped",
         "depth_m": 0.4,
     }

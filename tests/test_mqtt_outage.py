@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.mqtt import BASE, ROOT, SILO, summary, validate_json
+from tests.support.mqtt import BASE, ROOT, SILO, summary, summary_json, validate_json
 from tests.support.mqtt_broker import Broker
 
 
@@ -109,7 +109,7 @@ def test_publisher_sigkilled_with_pending_messages(tmp_path, collector_factory):
     broker = Broker(tmp_path / "broker")  # not started yet: the agent cannot deliver
     cfg = _config(tmp_path, broker.port)
     result = tmp_path / "result.json"
-    result.write_text(json.dumps(summary()))
+    result.write_text(json.dumps(summary_json()))
     proc = _cli(
         "publish",
         "--config",
@@ -142,7 +142,7 @@ def test_publisher_sigkilled_with_pending_messages(tmp_path, collector_factory):
         volume = validate_json(col.wait_topic(f"{BASE}/volume")[0].payload)
         newest = [q for q in queued if q["topic"] == f"{BASE}/volume"][-1]
         assert (volume["msg_id"], volume["seq"]) == (newest["msg_id"], newest["seq"])
-        assert volume["scan_id"] == f"{summary()['scan_id']}-3"
+        assert volume["scan_id"] == f"{summary().scan_id}-3"
         assert len(col.on(f"{BASE}/volume")) == 1
         online = validate_json(col.wait_topic(f"{BASE}/status")[-1].payload)
         assert online["state"] == "online" and online["seq"] > queued[-1]["seq"]

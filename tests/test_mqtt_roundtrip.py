@@ -32,14 +32,14 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
             "type": "collapse",
             "state": "raised",
             "severity": "critical",
-            "scan_id": result["scan_id"],
+            "scan_id": result.scan_id,
             "message": "surface dropped",
             "position": [0.4, -1.2],
             "area_m2": 0.35,
             "depth_m": 0.22,
         }
     )
-    tel.set_status(cameras={"cam-b": ("failed", "usb timeout")}, last_scan_id=result["scan_id"])
+    tel.set_status(cameras={"cam-b": ("failed", "usb timeout")}, last_scan_id=result.scan_id)
 
     scan = validate_json(col.wait_topic(f"{BASE}/scan")[0].payload)
     assert scan["cameras"]["failed"] == [{"serial": "cam-b", "error": "timeout"}]
@@ -47,16 +47,16 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     volume_msg = col.wait_topic(f"{BASE}/volume")[0]
     volume = validate_json(volume_msg.payload)
     assert (volume["volume_m3"], volume["mass_t"], volume["level"]["max"]) == (12.345, 9.506, 1.4)
-    assert volume["scan_id"] == result["scan_id"]
+    assert volume["scan_id"] == result.scan_id
     assert volume_msg.properties.UserProperty == [
         ("msg_id", volume["msg_id"]),
         ("seq", str(volume["seq"])),
     ]
 
     blob = col.wait_topic(f"{BASE}/heightmap")[0].payload
-    assert blob == encode_heightmap(hm, result["scan_id"])
+    assert blob == encode_heightmap(hm, result.scan_id)
     decoded, scan_id, frame = decode_heightmap_with_ids(blob)
-    assert (scan_id, frame) == (result["scan_id"], "silo")
+    assert (scan_id, frame) == (result.scan_id, "silo")
     assert np.nanmax(np.abs(decoded.heights - hm.heights)) <= 0.0005 + 1e-9
     assert np.array_equal(np.isnan(decoded.heights), np.isnan(hm.heights))
     assert np.array_equal(decoded.observed, hm.observed)
@@ -70,7 +70,7 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     col.wait_for(
         lambda ms: any(
             m.topic == f"{BASE}/status"
-            and json.loads(m.payload)["last_scan_id"] == result["scan_id"]
+            and json.loads(m.payload)["last_scan_id"] == result.scan_id
             and json.loads(m.payload)["cameras"][1]["state"] == "failed"
             for m in ms
         )
@@ -133,7 +133,7 @@ def test_late_joiners_get_the_retained_map_volume_and_status(
     tel.stop()
     late = collector_factory(broker, [f"{BASE}/#"], client_id="late")
     retained = late.wait_topic(f"{BASE}/heightmap")[0]
-    assert retained.retain and retained.payload == encode_heightmap(hm, summary()["scan_id"])
+    assert retained.retain and retained.payload == encode_heightmap(hm, summary().scan_id)
     assert late.wait_topic(f"{BASE}/volume")[0].retain
     status = late.wait_topic(f"{BASE}/status")[0]
     assert status.retain and validate_json(status.payload)["state"] == "stopped"

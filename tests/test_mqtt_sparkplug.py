@@ -65,7 +65,7 @@ def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
             "type": "level_high",
             "state": "raised",
             "severity": "warning",
-            "scan_id": summary()["scan_id"],
+            "scan_id": summary().scan_id,
             "value": 1.4,
             "threshold": 1.3,
         }
@@ -76,7 +76,7 @@ def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
     values = metric_map(data[0])
     assert values["Inventory/Volume m3"].value == 12.345
     assert values["Inventory/Level Max m"].value == 1.4
-    assert values["Scan/Last Id"].value == summary()["scan_id"]
+    assert values["Scan/Last Id"].value == summary().scan_id
     assert values["Scan/Time"].timestamp == 1795312800000  # captured_at, ms
     assert not values["Inventory/Volume m3"].is_historical
     assert metric_map(data[1])["Alarms/level_high"].value is True

@@ -11,6 +11,7 @@ import zlib
 import numpy as np
 import pytest
 
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import ConfigError, MqttConfig
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.telemetry import __main__ as cli
@@ -23,7 +24,7 @@ from silo_agent.telemetry.heightmap_codec import (
 )
 from silo_agent.telemetry.outbox import Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import check_summary, json_schemas, render_schema
-from tests.support.mqtt import SCHEMAS, realistic_heightmap, summary
+from tests.support.mqtt import SCHEMAS, realistic_heightmap, summary, summary_json
 
 
 def test_committed_schemas_match_the_models():
@@ -35,12 +36,14 @@ def test_committed_schemas_match_the_models():
 
 
 def test_summary_problems_are_named():
-    bad = summary()
+    bad = summary_json()
     del bad["coverage"]
-    with pytest.raises(ValueError, match="coverage"):
-        check_summary(bad)
+    with pytest.raises(ValueError, match="lacks 'coverage'"):
+        ScanSummary.from_json(bad)
     with pytest.raises(ValueError, match="coverage"):
         check_summary(summary(coverage=1.5))
+    with pytest.raises(ValueError, match="level"):
+        ScanSummary.from_json(summary_json(level=[1, 2, 3]))
 
 
 # ---------------------------------------------------------------- height map

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.cli import main
 from silo_agent.storage.audit import comparable
 from silo_agent.telemetry.payloads import check_summary
@@ -40,7 +41,7 @@ def test_cli_scan_replays_identical_and_keeps_the_published_shape(
     directory = Path(report["scan_dir"])
     kept = json.loads((directory / "result.json").read_text())
 
-    check_summary(kept)  # what the daemon would publish on P/scan and P/volume
+    check_summary(ScanSummary.from_json(kept))  # what the daemon would publish
     assert kept["cameras"] == {"used": ["CAM-A", "CAM-B"], "failed": []}
     assert kept["degraded"] is False and kept["captured_at"].endswith("Z")
     assert ("refined" in kept["parameters"]) is refine  # the snapshot's calibration was used

@@ -5,14 +5,14 @@ surface is built), then the reconstruction, then the piles of both detectors, wi
 over from the previous scan. This module sits above both `silo_agent.reconstruct` and
 `silo_agent.detect`, which do not import each other's orchestration; its `ScanAnalysis`
 carries the reconstruction's `Reconstruction` and what detection found on it, so the reconstruction
-knows nothing of piles and robots.
+knows nothing of piles and robots. `analysis.summary.summarise` makes the published summary.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
@@ -25,10 +25,6 @@ from silo_agent.scan import Scan, Site
 if TYPE_CHECKING:
     from silo_agent.detect.onnx_yolo import Located
 
-# The reconstruction's keys that the published summary (result.json, P/scan, `process --json`)
-# has always put after the detection's; kept there so its bytes stay as they were.
-_AFTER_DETECTION = ("registration_residual_m", "registration_residual")
-
 
 @dataclass
 class ScanAnalysis:
@@ -37,14 +33,6 @@ class ScanAnalysis:
     reconstruction: Reconstruction
     piles: list[Pile]  # both detectors', ids carried over from the previous scan
     robots: list[Robot] | None  # None: no YOLO model configured
-
-    def summary(self) -> dict[str, Any]:
-        """The JSON object of `silo-agent process --json` (docs/scan-format.md) and MQTT."""
-        summary = self.reconstruction.summary()
-        after = {key: summary.pop(key) for key in _AFTER_DETECTION}
-        summary["piles"] = [p.to_json() for p in self.piles]
-        summary["robots"] = None if self.robots is None else [r.to_json() for r in self.robots]
-        return summary | after
 
     def describe(self) -> str:
         """A few human-readable lines."""

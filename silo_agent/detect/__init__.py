@@ -7,7 +7,7 @@ only when a model is configured.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -51,6 +51,18 @@ class Robot:
             "confidence": self.confidence,
             "camera": self.camera,
         }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Robot:
+        """A robot of an earlier result.json."""
+        return cls(
+            float(data["x"]),
+            float(data["y"]),
+            float(data["z"]),
+            float(data["radius_m"]),
+            float(data["confidence"]),
+            str(data["camera"]),
+        )
 
     @property
     def disc(self) -> tuple[float, float, float]:

@@ -43,7 +43,8 @@ SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spi
 
 @dataclass
 class Reconstruction:
-    """Everything a scan's reconstruction says; `analysis.scan_analysis` adds detection's finds."""
+    """Everything a scan's reconstruction says; `analysis.scan_analysis` adds detection's finds
+    and `analysis.summary` makes the published summary of both."""
 
     scan_id: str
     method: str
@@ -61,36 +62,6 @@ class Reconstruction:
     parameters: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     registration: dict[str, PairResidual] = field(default_factory=dict)  # reconstruct/residual
-
-    def summary(self) -> dict[str, Any]:
-        """The reconstruction's part of the published summary (docs/scan-format.md)."""
-        surface = level = None
-        if self.surface is not None:
-            s = self.surface
-            surface = {"min_z": s.min, "mean_z": s.mean, "max_z": s.max}
-            level = {
-                "min": s.min - self.floor_z,
-                "mean": s.mean - self.floor_z,
-                "max": s.max - self.floor_z,
-            }
-        return {
-            "scan_id": self.scan_id,
-            "method": self.method,
-            "volume_m3": self.volume_m3,
-            "mass_t": self.mass_t,
-            "coverage": self.coverage,
-            "grid_step_m": self.grid_step_m,
-            "surface": surface,
-            "level": level,
-            "valid": self.valid,
-            "invalid_reason": self.invalid_reason,
-            "cameras": self.cameras,
-            "points": self.points,
-            "parameters": self.parameters,
-            "timings_s": self.timings_s,
-            "registration_residual_m": {k: r.median_m for k, r in self.registration.items()},
-            "registration_residual": {k: r.to_json() for k, r in self.registration.items()},
-        }
 
     def describe(self, findings: Sequence[str] = ()) -> str:
         """A few human-readable lines; `findings` (what detection found) go before the time."""

@@ -14,8 +14,9 @@ Pure numpy, one bincount per quantity, no loop over cells: it runs on every scan
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +43,12 @@ class PairResidual:
 
     def to_json(self) -> dict[str, float | int | str]:
         return {"median_m": self.median_m, "mad_m": self.mad_m, "cells": self.cells}
+
+    @classmethod
+    def from_json(cls, key: str, data: Mapping[str, Any]) -> PairResidual:
+        """One of a published result's pairs (`key` as `pair_key` makes it)."""
+        a, b = key.split("|", 1)
+        return cls(a, b, float(data["median_m"]), float(data["mad_m"]), int(data["cells"]))
 
 
 def median(values: np.ndarray) -> float:

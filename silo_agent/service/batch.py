@@ -65,7 +65,7 @@ def scan_dirs(targets: Sequence[Path]) -> list[Path]:
 
 
 def outcome_of(directory: Path, options: Options) -> Processed:
-    """`scan_service.process_directory` of one scan, its outcome as a line to print; never
+    """`scan_path.process_directory` of one scan, its outcome as a line to print; never
     raises for a bad scan."""
     from silo_agent.base.limits import LimitExceeded
     from silo_agent.config import ConfigError
@@ -89,7 +89,9 @@ def outcome_of(directory: Path, options: Options) -> Processed:
             name, FAILURE, error=f"{name}: processing failed: {type(exc).__name__}: {exc}"
         )
     if options.json:
-        return Processed(name, 0, json.dumps({**summary, "scan_dir": name}, allow_nan=False))
+        return Processed(
+            name, 0, json.dumps({**summary.to_json(), "scan_dir": name}, allow_nan=False)
+        )
     return Processed(name, 0, result.describe())
 
 

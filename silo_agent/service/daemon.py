@@ -22,12 +22,13 @@ from zoneinfo import ZoneInfo
 
 import structlog
 
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import FAILURE, OK
 from silo_agent.config import Config, ConfigError, config_warnings, load_config, stale_after_s
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.service.live_control import LiveControl
 from silo_agent.service.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
-from silo_agent.service.scan_path import new_scan_id
+from silo_agent.service.scan_path import new_scan_id, no_result_summary
 from silo_agent.service.sdnotify import Notifier
 from silo_agent.service.state_lock import StateLock
 from silo_agent.storage.audit import AuditCache
@@ -118,7 +119,7 @@ class Agent:
         outbox replays after a restart as history, not as the current value: without this
         it would show nulls from the first NBIRTH until the next scan."""
         try:
-            self.telemetry.restore_result(self.cache.latest_result())
+            self.telemetry.restore_result(ScanSummary.from_json(self.cache.latest_result()))
         except ValueError as exc:
             log.warning(
                 "no scan result restored: the Sparkplug birth starts with nulls",
@@ -270,12 +271,10 @@ class Agent:
 
     def _report(self, running: _Running, error: str) -> None:
         """A scan that ended without a result of its own (deadline, crash)."""
-        from silo_agent.service.pipeline import failure_summary
-
         running.reported = True
         log.error("scan failed", scan_id=running.scan_id, reason=error)
-        summary = failure_summary(
-            running.scan_id, f"{running.started:%Y-%m-%dT%H:%M:%SZ}", self.config, error, [], {}
+        summary = no_result_summary(
+            self.config, running.scan_id, f"{running.started:%Y-%m-%dT%H:%M:%SZ}", error, [], {}
         )
         try:
             self.telemetry.publish_scan_failure(summary)
@@ -294,7 +293,7 @@ class Agent:
                 scan_id=outcome.scan_id,
                 error=outcome.error if outcome.outcome == "failed" else None,
             )
-        volume = (outcome.summary or {}).get("volume_m3")
+        volume = outcome.summary.volume_m3 if outcome.summary is not None else None
         status = f"last scan {outcome.scan_id}: {outcome.outcome}"
         if volume is not None:
             status += f", {volume:.3f} m³"

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import structlog
 
 from silo_agent.analysis.alarms import AlarmState, Inputs, clear_switched_off, evaluate
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.atomic import write_atomic
 from silo_agent.capture import CameraFailure, capture_all
 from silo_agent.config import Config
@@ -29,9 +30,10 @@ from silo_agent.service.scan_path import (
     analyse_with,
     keep_result,
     new_scan,
+    no_result_summary,
     previous_piles,
     settings_of,
-    summarise,
+    summary_of,
 )
 from silo_agent.storage.audit import AuditCache, dump_json, is_disk_full
 from silo_agent.telemetry.client import Telemetry
@@ -56,40 +58,9 @@ class Outcome:
     scan_id: str
     outcome: str  # ok | invalid | failed
     error: str | None = None
-    summary: dict[str, Any] | None = None
+    summary: ScanSummary | None = None
     directory: Path | None = None
     events: list[dict[str, Any]] = field(default_factory=list)
-
-
-def failure_summary(
-    scan_id: str,
-    captured_at: str,
-    config: Config,
-    reason: str,
-    failures: list[CameraFailure],
-    timings: dict[str, float],
-) -> dict[str, Any]:
-    """A `P/scan` for a scan that produced no result."""
-    return {
-        "scan_id": scan_id,
-        "captured_at": captured_at,
-        "method": config.reconstruction.method,
-        "volume_m3": None,
-        "mass_t": None,
-        "coverage": 0.0,
-        "grid_step_m": config.reconstruction.grid_step_m,
-        "surface": None,
-        "level": None,
-        "valid": False,
-        "invalid_reason": reason,
-        "degraded": bool(failures),
-        "cameras": {
-            "used": [],
-            "failed": [{"serial": f.serial, "error": f.error} for f in failures],
-        },
-        "piles": [],
-        "timings": {k: round(v, 4) for k, v in timings.items()},
-    }
 
 
 class Pipeline:
@@ -210,11 +181,10 @@ class Pipeline:
             )
         t = lap("reconstruct", t)
         check()
-        summary = summarise(analysed, scan, timings)
+        summary = summary_of(analysed, scan, timings)
         if directory is not None:  # kept before the alarms, so losing it raises `cache`
             cache_full = not self._keep_result(directory, summary, analysed, previous)
         result = analysed.reconstruction
-        surface = summary.get("surface") or {}
         inputs = Inputs(
             scan_id=scan_id,
             heightmap=result.heightmap,
@@ -223,7 +193,7 @@ class Pipeline:
             valid=result.valid,
             floor_z=config.silo.floor_z,
             ceiling_z=config.silo.ceiling_z,
-            max_z=surface.get("max_z"),
+            max_z=summary.surface.max_z if summary.surface is not None else None,
             failed_cameras=failed,
             cache_full=cache_full,
             baseline=self._baseline(),
@@ -236,7 +206,7 @@ class Pipeline:
         t = lap("alarms", t)
         check()
 
-        summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
+        summary = replace(summary, timings={k: round(v, 4) for k, v in timings.items()})
         self.state = state
         self._save_state()
         self._publish(summary, result, events)
@@ -279,7 +249,7 @@ class Pipeline:
         return None, True
 
     def _keep_result(
-        self, directory: Path, summary: dict[str, Any], result: ScanAnalysis, previous: list[Pile]
+        self, directory: Path, summary: ScanSummary, result: ScanAnalysis, previous: list[Pile]
     ) -> bool:
         """result.json, the height map and inputs.json into the scan's directory; on a full
         disk evict older scans and retry once. False if they could not all be kept."""
@@ -309,7 +279,7 @@ class Pipeline:
         failed: tuple[tuple[str, str], ...],
         cache_full: bool = False,
     ) -> Outcome:
-        summary = failure_summary(scan_id, captured_at, self.config, reason, failures, timings)
+        summary = no_result_summary(self.config, scan_id, captured_at, reason, failures, timings)
         inputs = Inputs(
             scan_id=scan_id,
             heightmap=None,
@@ -333,7 +303,7 @@ class Pipeline:
         return Outcome(scan_id, "failed", reason, summary, None, events)
 
     def _publish(
-        self, summary: dict[str, Any], result: Reconstruction, events: list[dict[str, Any]]
+        self, summary: ScanSummary, result: Reconstruction, events: list[dict[str, Any]]
     ) -> None:
         self.telemetry.publish_result(summary, result.heightmap)
         for event in events:
@@ -342,18 +312,18 @@ class Pipeline:
                 "alarm", **{k: v for k, v in event.items() if k != "message"}, text=event["message"]
             )
 
-    def _count(self, outcome: str, summary: dict[str, Any]) -> None:
+    def _count(self, outcome: str, summary: ScanSummary) -> None:
         m = self.metrics
         m.scans.labels(outcome).inc()
-        captured = iso_to_ms(summary["captured_at"]) / 1000.0
+        captured = iso_to_ms(summary.captured_at) / 1000.0
         m.last_scan.set(captured)
         if outcome != "failed":
-            m.coverage.set(summary["coverage"])
-        if summary["valid"] and summary.get("volume_m3") is not None:
-            m.volume.set(summary["volume_m3"])
+            m.coverage.set(summary.coverage)
+        if summary.valid and summary.volume_m3 is not None:
+            m.volume.set(summary.volume_m3)
             m.last_valid_scan.set(captured)
-            if summary.get("mass_t") is not None:
-                m.mass.set(summary["mass_t"] * 1000.0)
+            if summary.mass_t is not None:
+                m.mass.set(summary.mass_t * 1000.0)
         m.set_alarms(self.state.active)
 
     def clear_switched_off_alarms(self) -> None:

@@ -3,9 +3,9 @@
 A scan carries the config snapshot it was taken with (`scan.json` key `config`, next to its
 `reconstruction` settings and `site`), and the analysis arguments are always derived from the
 scan itself (`settings_of`), so a later `replay` processes it exactly as it was processed when
-it was published, `[calibration]` included. Every path builds its summary with `summarise`
-(the shape `telemetry.payloads.ScanPayload` validates, plus the engine's details) and keeps it
-with `keep_result`, atomically, through the audit cache.
+it was published, `[calibration]` included. Every path builds its summary with `summary_of`
+(`analysis.summary.ScanSummary`) and keeps it with `keep_result`, atomically, through the
+audit cache.
 
 `process` goes through here too, so structlog, the audit cache and the version lookup are
 imported where they are used, not at the top: a one-off `process` never needs them.
@@ -14,6 +14,7 @@ imported where they are used, not at the top: a one-off `process` never needs th
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
@@ -33,6 +34,7 @@ from silo_agent.scan import MANIFEST, Scan, ScanError, Site, read_scan
 
 if TYPE_CHECKING:
     from silo_agent.analysis.scan_analysis import ScanAnalysis
+    from silo_agent.analysis.summary import FailedCamera, ScanSummary
     from silo_agent.capture import CameraFailure
     from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud
@@ -151,18 +153,36 @@ def analyse_with(scan: Scan, analysis: AnalysisSettings, previous: list[Pile]) -
     )
 
 
-def summarise(result: ScanAnalysis, scan: Scan, timings: dict[str, float]) -> dict[str, Any]:
-    """The result as published on `P/scan` and kept as `result.json` by every path."""
-    failures = scan.extra.get("failures") or []
-    summary = result.summary()
-    summary["captured_at"] = scan.captured_at
-    summary["degraded"] = bool(failures)
-    summary["cameras"] = {
-        "used": [c.serial for c in scan.cameras],
-        "failed": [{"serial": f["serial"], "error": f["error"]} for f in failures],
-    }
-    summary["timings"] = {k: round(v, 4) for k, v in timings.items()}
-    return summary
+def failed_cameras(scan: Scan) -> list[FailedCamera]:
+    """The cameras that failed during the scan's capture (its `failures`)."""
+    from silo_agent.analysis.summary import FailedCamera
+
+    return [FailedCamera(f["serial"], f["error"]) for f in scan.extra.get("failures") or []]
+
+
+def summary_of(result: ScanAnalysis, scan: Scan, timings: dict[str, float]) -> ScanSummary:
+    """`analysis.summary.summarise` of a scan's analysis, as every path publishes it."""
+    from silo_agent.analysis.summary import summarise
+
+    return summarise(result, scan.captured_at, failed_cameras(scan), timings)
+
+
+def no_result_summary(
+    config: Config,
+    scan_id: str,
+    captured_at: str,
+    reason: str,
+    failures: Sequence[CameraFailure],
+    timings: dict[str, float],
+) -> ScanSummary:
+    """The summary of a scan that produced no result (`reason` says why)."""
+    from silo_agent.analysis.summary import FailedCamera, NoResult, summarise
+
+    outcome = NoResult(
+        scan_id, config.reconstruction.method, config.reconstruction.grid_step_m, reason
+    )
+    failed = [FailedCamera(f.serial, f.error) for f in failures]
+    return summarise(outcome, captured_at, failed, timings)
 
 
 def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
@@ -190,13 +210,13 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
 
 
 def keep_result(
-    directory: Path, summary: dict[str, Any], result: ScanAnalysis, previous: list[Pile]
+    directory: Path, summary: ScanSummary, result: ScanAnalysis, previous: list[Pile]
 ) -> None:
     """The summary, height map and processing inputs next to the scan, each written atomically."""
     from silo_agent.storage.audit import AuditCache
 
     inputs = {"previous_piles": [p.to_json() for p in previous]}
-    AuditCache.add_result(directory, summary, result.reconstruction.heightmap, inputs)
+    AuditCache.add_result(directory, summary.to_json(), result.reconstruction.heightmap, inputs)
 
 
 def process_directory(
@@ -204,7 +224,7 @@ def process_directory(
     config: Config | None = None,
     grid_step_m: float | None = None,
     method: str | None = None,
-) -> tuple[Scan, ScanAnalysis, dict[str, Any]]:
+) -> tuple[Scan, ScanAnalysis, ScanSummary]:
     """`silo-agent process` of one scan directory: (scan, result, summary); nothing written.
 
     Raises ScanError for a bad directory, ConfigError for bad settings, ModelError for a bad
@@ -212,7 +232,7 @@ def process_directory(
     scan = read_scan(directory)
     analysis = overridden(settings_of(scan), config, grid_step_m, method)
     result = analyse_with(scan, analysis, [])
-    return scan, result, summarise(result, scan, {})
+    return scan, result, summary_of(result, scan, {})
 
 
 def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -232,4 +252,4 @@ def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         inputs = {}
     previous = [Pile.from_json(p) for p in inputs.get("previous_piles") or []]
     result = analyse_with(scan, settings_of(scan), previous)
-    return published, summarise(result, scan, {})
+    return published, summary_of(result, scan, {}).to_json()

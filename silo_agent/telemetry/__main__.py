@@ -18,10 +18,12 @@ import json
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.config import ConfigError, load_config
 from silo_agent.grid.heightmap import HeightMap
@@ -66,12 +68,12 @@ def _send(telemetry: Telemetry, timeout: float, linger: float = 0.0) -> int:
 def cmd_publish(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     telemetry = Telemetry.from_config(config)
-    summary = json.loads(args.result.read_text(encoding="utf-8"))
+    summary = ScanSummary.from_json(json.loads(args.result.read_text(encoding="utf-8")))
     heightmap = load_heightmap(args.heightmap) if args.heightmap else None
     for k in range(args.repeat):
-        one = dict(summary)
+        one = summary
         if args.repeat > 1:
-            one["scan_id"] = f"{summary['scan_id']}-{k}"
+            one = replace(summary, scan_id=f"{summary.scan_id}-{k}")
         for topic, env in zip(
             ("scan", "volume", "heightmap"), telemetry.publish_result(one, heightmap), strict=False
         ):

@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from silo_agent import __version__
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import Config, MqttConfig, stale_after_s
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.telemetry import sparkplug
@@ -181,10 +182,13 @@ class Telemetry:
 
     # ------------------------------------------------------------ producer API
 
-    def publish_result(self, summary: dict, heightmap: HeightMap | None = None) -> list[Envelope]:
+    def publish_result(
+        self, summary: ScanSummary, heightmap: HeightMap | None = None
+    ) -> list[Envelope]:
         """Queue `P/scan`, `P/volume` (retained) and `P/heightmap` (retained) for one result."""
         check_summary(summary)
-        blob = encode_heightmap(heightmap, summary["scan_id"]) if heightmap is not None else None
+        volume = volume_payload(Envelope.new(1), summary).model_dump(mode="json")
+        blob = encode_heightmap(heightmap, summary.scan_id) if heightmap is not None else None
         envs = [
             self._enqueue("scan", lambda e: scan_payload(e, summary).to_bytes()),
             self._enqueue("volume", lambda e: volume_payload(e, summary).to_bytes(), retain=True),
@@ -192,22 +196,22 @@ class Telemetry:
         if blob is not None:
             envs.append(self._enqueue("heightmap", lambda _e: blob, retain=True, kind=KIND_BINARY))
         with self.state.lock:
-            self.state.last_scan_id = summary["scan_id"]
+            self.state.last_scan_id = summary.scan_id
             self.state.status_dirty = True
         if self.spb.enabled:
             with self.state.lock:
-                raw, new_metric = self.spb_node.data_from_result(summary)
+                raw, new_metric = self.spb_node.data_from_result(volume)
             self._enqueue_sparkplug(raw, new_metric)
         return envs
 
-    def publish_scan_failure(self, summary: dict) -> Envelope:
+    def publish_scan_failure(self, summary: ScanSummary) -> Envelope:
         """Queue `P/scan` alone for a scan that produced no usable result (its
         `invalid_reason` says why): the retained `P/volume` and `P/heightmap` keep the last
         good values."""
         check_summary(summary)
         env = self._enqueue("scan", lambda e: scan_payload(e, summary).to_bytes())
         with self.state.lock:
-            self.state.last_scan_id = summary["scan_id"]
+            self.state.last_scan_id = summary.scan_id
             self.state.status_dirty = True
         return env
 
@@ -238,7 +242,7 @@ class Telemetry:
             self.state.alarms_dirty = True
             self.state.rebirth = True
 
-    def restore_result(self, summary: dict) -> None:
+    def restore_result(self, summary: ScanSummary) -> None:
         """The last published result (from the audit cache): every birth from now on carries
         it, as the retained `P/volume` does, not nulls until the next scan. Only what
         `P/volume` says is taken, validated as for publishing; ValueError if it cannot be."""

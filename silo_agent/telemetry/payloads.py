@@ -16,6 +16,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from silo_agent.analysis.summary import ScanSummary
+
 SAFE_NAME = r"^[A-Za-z0-9_-]+$"
 MAX_COMMAND_BYTES = 65536
 
@@ -205,51 +207,52 @@ PAYLOADS: dict[str, type[_Payload]] = {
 # ---------------------------------------------------------------- builders
 
 
-def _level(summary: dict) -> Stats:
-    level = summary.get("level") or {}
-    return Stats(min=level.get("min"), mean=level.get("mean"), max=level.get("max"))
+def _level(summary: ScanSummary) -> Stats:
+    level = summary.level
+    if level is None:
+        return Stats(min=None, mean=None, max=None)
+    return Stats(min=level.min, mean=level.mean, max=level.max)
 
 
-def volume_payload(env: Envelope, summary: dict) -> VolumePayload:
-    """`P/volume` from a result summary (reconstruct's `summary()` dict)."""
+def volume_payload(env: Envelope, summary: ScanSummary) -> VolumePayload:
+    """`P/volume` from a result summary."""
     return VolumePayload(
         **env.model_dump(),
-        scan_id=summary["scan_id"],
-        captured_at=summary["captured_at"],
-        volume_m3=summary.get("volume_m3"),
-        mass_t=summary.get("mass_t"),
-        coverage=summary["coverage"],
+        scan_id=summary.scan_id,
+        captured_at=summary.captured_at,
+        volume_m3=summary.volume_m3,
+        mass_t=summary.mass_t,
+        coverage=summary.coverage,
         level=_level(summary),
-        valid=summary["valid"],
-        degraded=summary.get("degraded", False),
+        valid=summary.valid,
+        degraded=summary.degraded,
     )
 
 
-def scan_payload(env: Envelope, summary: dict) -> ScanPayload:
-    """`P/scan`: the summary as it is, validated."""
-    cameras = summary.get("cameras") or {}
-    surface = summary.get("surface") or {}
+def scan_payload(env: Envelope, summary: ScanSummary) -> ScanPayload:
+    """`P/scan`: the summary's published part, validated."""
+    surface = summary.surface
     return ScanPayload(
         **env.model_dump(),
-        scan_id=summary["scan_id"],
-        captured_at=summary["captured_at"],
-        volume_m3=summary.get("volume_m3"),
-        mass_t=summary.get("mass_t"),
-        coverage=summary["coverage"],
-        grid_step_m=summary["grid_step_m"],
-        surface=SurfaceStats(
-            min_z=surface.get("min_z"), mean_z=surface.get("mean_z"), max_z=surface.get("max_z")
-        ),
+        scan_id=summary.scan_id,
+        captured_at=summary.captured_at,
+        volume_m3=summary.volume_m3,
+        mass_t=summary.mass_t,
+        coverage=summary.coverage,
+        grid_step_m=summary.grid_step_m,
+        surface=SurfaceStats(min_z=None, mean_z=None, max_z=None)
+        if surface is None
+        else SurfaceStats(min_z=surface.min_z, mean_z=surface.mean_z, max_z=surface.max_z),
         level=_level(summary),
-        valid=summary["valid"],
-        invalid_reason=summary.get("invalid_reason"),
-        degraded=summary.get("degraded", False),
+        valid=summary.valid,
+        invalid_reason=summary.invalid_reason,
+        degraded=summary.degraded,
         cameras=CamerasUsed(
-            used=list(cameras.get("used", [])),
-            failed=[FailedCamera(**f) for f in cameras.get("failed", [])],
+            used=list(summary.cameras.used),
+            failed=[FailedCamera(serial=f.serial, error=f.error) for f in summary.cameras.failed],
         ),
-        piles=list(summary.get("piles", [])),
-        timings={k: float(v) for k, v in (summary.get("timings") or {}).items()},
+        piles=[p.to_json() for p in summary.piles],
+        timings={k: float(v) for k, v in summary.timings.items()},
     )
 
 
@@ -269,18 +272,14 @@ def alarm_payload(env: Envelope, event: dict) -> AlarmPayload:
     return AlarmPayload(**env.model_dump(), **event)
 
 
-def check_summary(summary: dict) -> None:
+def check_summary(summary: ScanSummary) -> None:
     """Raise ValueError naming the problem if a summary cannot become the payloads."""
     env = Envelope.new(1)
     try:
         volume_payload(env, summary)
         scan_payload(env, summary)
-    except KeyError as exc:
-        raise ValueError(f"result summary lacks {exc.args[0]!r}") from None
     except ValidationError as exc:
         raise ValueError(f"result summary: {describe_errors(exc)}") from None
-    except (TypeError, AttributeError) as exc:  # a part that is not an object, e.g. `level`
-        raise ValueError(f"result summary: {exc}") from None
 
 
 def describe_errors(exc: ValidationError) -> str:

@@ -12,7 +12,7 @@ are replayed after an outage.
 from __future__ import annotations
 
 import time
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -120,11 +120,11 @@ class SparkplugNode:
             if alarm_type in raised:
                 self.stamps[alarm_metric(alarm_type)] = restored
 
-    def restore_result(self, summary: dict) -> None:
+    def restore_result(self, volume: Mapping[str, Any]) -> None:
         """Take the last result published before this start, so that the first NBIRTH after
         a restart carries it (with its capture time) instead of nulls; the run that published
         it sent its NDATA, or left it in the outbox."""
-        self._remember(*_result_values(summary))
+        self._remember(*_result_values(volume))
 
     def birth(self, bd_seq: int) -> bytes:
         """NBIRTH: seq 0, bdSeq of this session, the rebirth control and every metric, each
@@ -166,8 +166,9 @@ class SparkplugNode:
             _set_value(payload.metrics.add(name=name, timestamp=ts), self.datatypes[name], value)
         return payload.SerializeToString(), new_metric
 
-    def data_from_result(self, summary: dict) -> tuple[bytes, bool]:
-        return self._data(*_result_values(summary))
+    def data_from_result(self, volume: Mapping[str, Any]) -> tuple[bytes, bool]:
+        """NDATA of a result: `volume` is its `P/volume` payload's JSON fields."""
+        return self._data(*_result_values(volume))
 
     def data_from_alarm(self, event: dict) -> tuple[bytes, bool]:
         return self._data({alarm_metric(event["type"]): event["state"] == "raised"}, now_ms())
@@ -176,8 +177,8 @@ class SparkplugNode:
         return self._data({camera_metric(s): v for s, v in states.items()}, now_ms())
 
 
-def _result_values(summary: dict) -> tuple[dict[str, Any], int]:
-    """The metrics of a scan result (the shape of `P/volume`) and its capture time, ms."""
+def _result_values(summary: Mapping[str, Any]) -> tuple[dict[str, Any], int]:
+    """The metrics of a scan result (a `P/volume` payload's fields) and its capture time, ms."""
     level = summary.get("level") or {}
     captured = iso_to_ms(summary["captured_at"])
     values = {

@@ -92,9 +92,11 @@ class ScanView:
 
 def published_volume(summary: dict[str, Any]) -> dict[str, Any]:
     """What `P/volume` carries for a result summary, without the envelope (msg_id, seq, ts)."""
+    from silo_agent.analysis.summary import ScanSummary
     from silo_agent.telemetry.payloads import Envelope, volume_payload
 
-    payload = volume_payload(Envelope.new(1), summary).model_dump(mode="json", by_alias=True)
+    typed = ScanSummary.from_json(summary)
+    payload = volume_payload(Envelope.new(1), typed).model_dump(mode="json", by_alias=True)
     return {k: v for k, v in payload.items() if k not in ("msg_id", "seq", "ts")}
 
 
@@ -140,7 +142,8 @@ def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
     if not kept:
         from silo_agent.service.scan_path import process_directory
 
-        scan, result, summary = process_directory(directory, config)
+        scan, result, processed = process_directory(directory, config)
+        summary = processed.to_json()  # as result.json holds it
         heightmap = result.reconstruction.heightmap
     assert summary is not None
     return ScanView(

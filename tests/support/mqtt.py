@@ -13,6 +13,7 @@ import jsonschema
 import numpy as np
 import pytest
 
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import MqttConfig
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.telemetry.client import Telemetry
@@ -90,8 +91,8 @@ def telemetry_factory(tmp_path: Path) -> Iterator[Callable[..., Telemetry]]:
             t.stop()
 
 
-def summary(scan_id: str = f"{SILO}-20261122T020000Z", **changes) -> dict:
-    """A result summary as reconstruct's summary() makes it."""
+def summary_json(scan_id: str = f"{SILO}-20261122T020000Z", **changes) -> dict:
+    """A result summary's JSON, the keys every output reads (no engine details)."""
     out = {
         "scan_id": scan_id,
         "captured_at": "2026-11-22T02:00:00.000Z",
@@ -105,11 +106,27 @@ def summary(scan_id: str = f"{SILO}-20261122T020000Z", **changes) -> dict:
         "invalid_reason": None,
         "degraded": False,
         "cameras": {"used": ["cam-a"], "failed": [{"serial": "cam-b", "error": "timeout"}]},
-        "piles": [{"x": 0.5, "y": -0.2, "height_m": 1.1}],
+        "piles": [
+            {
+                "id": 1,
+                "detector": "geometric",
+                "centroid": {"x": 0.5, "y": -0.2},
+                "peak": {"x": 0.5, "y": -0.2},
+                "peak_height_m": 1.1,
+                "footprint_m2": 0.6,
+                "volume_m3": 0.2,
+                "confidence": None,
+            }
+        ],
         "timings": {"capture_s": 4.2, "reconstruct_s": 1.3},
     }
     out.update(changes)
     return out
+
+
+def summary(scan_id: str = f"{SILO}-20261122T020000Z", **changes) -> ScanSummary:
+    """A result summary as the pipeline publishes it (`summary_json`'s keys)."""
+    return ScanSummary.from_json(summary_json(scan_id, **changes))
 
 
 def realistic_heightmap(
