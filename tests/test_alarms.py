@@ -173,7 +173,7 @@ def test_lifecycle_raises_once_keeps_the_baseline_and_clears_when_filled():
     for scan_id, hm in maps.items():
         base_id = state.baseline_scan_id
         events, state = evaluate(state, inputs(hm, scan_id, maps.get(base_id), base_id), cfg)
-        log.append((scan_id, [(e["type"], e["state"]) for e in events], state.baseline_scan_id))
+        log.append((scan_id, [(e.type, e.state) for e in events], state.baseline_scan_id))
     assert log == [
         ("s1", [], "s1"),
         ("s2", [], "s2"),
@@ -191,10 +191,10 @@ def test_collapse_event_payload():
         AlarmState(baseline_scan_id="b"), inputs(after, "n", before, "b"), AlarmsConfig()
     )
     (event,) = events
-    assert event["type"] == "collapse" and event["state"] == "raised"
-    assert event["severity"] == "critical" and event["scan_id"] == "n"
-    assert np.hypot(event["position"][0] - FUNNEL[0], event["position"][1] - FUNNEL[1]) < 0.05
-    assert event["depth_m"] > 0.4 and event["area_m2"] > 1.5 and event["volume_m3"] > 0.4
+    assert event.type == "collapse" and event.state == "raised"
+    assert event.severity == "critical" and event.scan_id == "n"
+    assert np.hypot(event.position[0] - FUNNEL[0], event.position[1] - FUNNEL[1]) < 0.05
+    assert event.depth_m > 0.4 and event.area_m2 > 1.5 and event.volume_m3 > 0.4
     assert "collapse" in state.active
     from silo_agent.telemetry.payloads import Envelope, alarm_payload
 
@@ -209,7 +209,7 @@ def test_level_high_with_hysteresis():
     seen = []
     for max_z in (2.4, 2.55, 2.4, 2.3):  # ceiling 2.8: raise within 0.3, clear beyond 0.45
         events, state = evaluate(state, inputs(hm, f"s{max_z}", max_z=max_z), cfg)
-        seen.append([(e["type"], e["state"]) for e in events if e["type"] == "level_high"])
+        seen.append([(e.type, e.state) for e in events if e.type == "level_high"])
     assert seen == [[], [("level_high", "raised")], [], [("level_high", "cleared")]]
 
 
@@ -222,7 +222,7 @@ def test_low_volume_change_and_faults():
     def step(scan_id, **kw):
         nonlocal state
         events, state = evaluate(state, inputs(hm, scan_id, **kw), cfg)
-        return sorted((e["type"], e["state"]) for e in events)
+        return sorted((e.type, e.state) for e in events)
 
     assert step("a", volume_m3=40.0) == []
     assert step("b", volume_m3=30.0) == [("change", "raised")]  # -25 % in one scan
@@ -257,7 +257,7 @@ def test_another_alarm_type_plugs_in():
             AlarmsConfig(),
             detectors={"calibration_drift": drift},
         )
-        kinds.append([(e["type"], e["state"], e.get("value")) for e in events])
+        kinds.append([(e.type, e.state, e.value) for e in events])
     assert kinds == [
         [],
         [("calibration_drift", "raised", 1.5)],
@@ -287,14 +287,12 @@ def test_a_switched_off_detector_clears_its_alarm_in_the_next_scan():
     events, after = evaluate(
         state, inputs(surface(rng), "b", volume_m3=5.0, coverage=0.1), AlarmsConfig()
     )
-    assert [(e["type"], e["state"], e["scan_id"]) for e in events] == [
-        ("level_low", "cleared", "b")
-    ]
-    assert "low_volume_m3" in events[0]["message"] and set(after.active) == {"coverage"}
+    assert [(e.type, e.state, e.scan_id) for e in events] == [("level_low", "cleared", "b")]
+    assert "low_volume_m3" in events[0].message and set(after.active) == {"coverage"}
     events, off = evaluate(
         state, inputs(surface(rng), "c", coverage=0.1), AlarmsConfig(enabled=False)
     )
-    assert sorted((e["type"], e["state"]) for e in events) == [
+    assert sorted((e.type, e.state) for e in events) == [
         ("coverage", "cleared"),
         ("level_low", "cleared"),
     ]

@@ -117,7 +117,7 @@ def test_the_calibration_alarm_follows_the_drift_detector() -> None:
             gravity_tolerance_deg={"a": 3.0},
         )
         events, state = evaluate(state, inputs, AlarmsConfig(), detectors={}, calibration=SETTINGS)
-        seen += [(k, e["type"], e["state"]) for e in events]
+        seen += [(k, e.type, e.state) for e in events]
         published += [alarm_payload(Envelope.new(k + 1), e) for e in events]  # as MQTT does
         state = AlarmState.from_json(state.to_json())  # as the agent persists it
     assert seen == [(2, "calibration", "raised"), (6, "calibration", "cleared")]

@@ -6,7 +6,7 @@ import json
 
 import jinja2
 
-from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.analysis.alarm_types import ALARM_TYPES, AlarmEvent
 from silo_agent.config import ScheduleConfig, stale_after_s
 from tests.support.mqtt import BASE, SILO, summary, validate_json
 
@@ -44,12 +44,14 @@ def test_discovery_config_and_republish_on_ha_online(broker, telemetry_factory, 
     # the templates produce the right states from the payloads the agent really publishes
     tel.publish_result(summary())
     tel.publish_alarm(
-        {
-            "type": "collapse",
-            "state": "raised",
-            "severity": "critical",
-            "scan_id": summary().scan_id,
-        }
+        AlarmEvent.from_json(
+            {
+                "type": "collapse",
+                "state": "raised",
+                "severity": "critical",
+                "scan_id": summary().scan_id,
+            }
+        )
     )
     vol = col.wait_topic(f"{BASE}/volume")[0].payload
     assert render(volume["value_template"], vol) == "12.345"
@@ -251,7 +253,9 @@ def test_every_alarm_state_is_retained_at_start_and_sent_again_when_ha_comes_onl
         "message": "surface dropped",
         "depth_m": 0.4,
     }
-    tel.restore_alarms({"collapse": raised})  # what the agent persisted before a restart
+    tel.restore_alarms(
+        {"collapse": AlarmEvent.from_json(raised)}
+    )  # what the agent persisted before a restart
     tel.start()
     col.wait_for(lambda ms: {m.topic for m in ms} >= topics)
     fresh = collector_factory(broker, [f"{BASE}/alarm/+"], client_id="fresh-ha")
@@ -278,15 +282,16 @@ def test_no_discovery_without_home_assistant_even_for_a_new_alarm_type(
     tel = telemetry_factory(broker)
     tel.restore_alarms(
         {
-            "silo_door": {
-                "type": "silo_door",
-                "state": "raised",
-                "severity": "warning",
-                "scan_id": None,
-            }
+            "silo_door": AlarmEvent(
+                type="silo_door", state="raised", severity="warning", scan_id=None
+            )
         }
     )
-    tel.publish_alarm({"type": "hopper", "state": "raised", "severity": "warning", "scan_id": None})
+    tel.publish_alarm(
+        AlarmEvent.from_json(
+            {"type": "hopper", "state": "raised", "severity": "warning", "scan_id": None}
+        )
+    )
     col.wait_topic(f"{BASE}/alarm/hopper")
     col.wait_topic(f"{BASE}/alarm/silo_door")
     col.publish(f"{BASE}/cmd/scan", b"{}")  # a round trip through the agent, then look

@@ -8,6 +8,7 @@ import numpy as np
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.telemetry.client import CommandRejected, ScanCommand
 from silo_agent.telemetry.heightmap_codec import decode_heightmap_with_ids, encode_heightmap
 from tests.support.mqtt import BASE, realistic_heightmap, summary, validate_json
@@ -28,16 +29,18 @@ def test_every_topic_round_trips(broker, telemetry_factory, collector_factory):
     result = summary()
     tel.publish_result(result, hm)
     tel.publish_alarm(
-        {
-            "type": "collapse",
-            "state": "raised",
-            "severity": "critical",
-            "scan_id": result.scan_id,
-            "message": "surface dropped",
-            "position": [0.4, -1.2],
-            "area_m2": 0.35,
-            "depth_m": 0.22,
-        }
+        AlarmEvent.from_json(
+            {
+                "type": "collapse",
+                "state": "raised",
+                "severity": "critical",
+                "scan_id": result.scan_id,
+                "message": "surface dropped",
+                "position": [0.4, -1.2],
+                "area_m2": 0.35,
+                "depth_m": 0.22,
+            }
+        )
     )
     tel.set_status(cameras={"cam-b": ("failed", "usb timeout")}, last_scan_id=result.scan_id)
 

@@ -9,6 +9,7 @@ import time
 import pysparkplug as ps
 from structlog.testing import capture_logs
 
+from silo_agent.analysis.alarm_types import AlarmEvent
 from tests.support.mqtt import SILO, summary
 from tests.support.mqtt_broker import Broker
 from tests.support.sparkplug import rebirth_request
@@ -61,14 +62,16 @@ def test_birth_data_rebirth_death_and_bd_seq_across_restarts(
 
     tel.publish_result(summary())
     tel.publish_alarm(
-        {
-            "type": "level_high",
-            "state": "raised",
-            "severity": "warning",
-            "scan_id": summary().scan_id,
-            "value": 1.4,
-            "threshold": 1.3,
-        }
+        AlarmEvent.from_json(
+            {
+                "type": "level_high",
+                "state": "raised",
+                "severity": "warning",
+                "scan_id": summary().scan_id,
+                "value": 1.4,
+                "threshold": 1.3,
+            }
+        )
     )
     col.wait_topic(NODE.format("NDATA"), 2)
     data = [ps.NData.decode(m.payload, birth=birth) for m in col.on(NODE.format("NDATA"))]
@@ -242,7 +245,9 @@ def test_birth_stamps_each_metric_with_when_its_value_was_measured(
     col.wait_topic(NODE.format("NBIRTH"))
     tel.publish_result(summary())
     tel.publish_alarm(
-        {"type": "level_high", "state": "raised", "severity": "warning", "scan_id": "s"}
+        AlarmEvent.from_json(
+            {"type": "level_high", "state": "raised", "severity": "warning", "scan_id": "s"}
+        )
     )
     tel.set_status(cameras={"cam-a": ("ok", None)})
     col.wait_topic(NODE.format("NDATA"), 3)

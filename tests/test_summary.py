@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.scan_analysis import analyse
 from silo_agent.analysis.summary import FailedCamera, NoResult, ScanSummary, summarise
 from silo_agent.config import DetectionConfig, ReconstructionConfig
@@ -46,3 +47,35 @@ def test_a_scan_without_a_result_has_the_published_keys_only() -> None:
     assert out["cameras"] == {"used": [], "failed": [{"serial": "cam-a", "error": "timeout"}]}
     assert out["degraded"] is True and out["piles"] == [] and out["coverage"] == 0.0
     assert ScanSummary.from_json(out) == summary
+
+
+def test_an_alarm_event_is_its_json_and_back() -> None:
+    """The persisted alarm state and `telemetry publish --alarm` read events back as they were
+    written; details nobody set are not in the JSON (as the retained states always were)."""
+    event = AlarmEvent(
+        type="collapse",
+        state="raised",
+        severity="critical",
+        scan_id="silo-1-20261122T020000Z",
+        message="surface dropped",
+        position=(0.4, -1.2),
+        area_m2=0.35,
+        threshold=0.1,
+    )
+    out = event.to_json()
+    assert list(out) == [
+        "type",
+        "state",
+        "severity",
+        "scan_id",
+        "message",
+        "position",
+        "area_m2",
+        "threshold",
+    ]
+    assert out["position"] == [0.4, -1.2]
+    assert AlarmEvent.from_json(json.loads(json.dumps(out))) == event
+    with pytest.raises(ValueError, match=r"unknown key.*colour"):
+        AlarmEvent.from_json({**out, "colour": "red"})
+    with pytest.raises(ValueError, match="severity"):
+        AlarmEvent.from_json({"type": "x", "state": "raised", "scan_id": None})

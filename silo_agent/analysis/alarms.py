@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.analysis.alarm_types import ALARM_TYPES, AlarmEvent, AlarmStateName, Severity
 from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
 from silo_agent.grid.heightmap import HeightMap
 
@@ -58,9 +58,9 @@ class Finding:
     """A detector's verdict: the condition holds (`active`) and what to say about it."""
 
     active: bool
-    severity: str = "warning"
+    severity: Severity = "warning"
     message: str = ""
-    details: Mapping[str, Any] = field(default_factory=dict)
+    details: Mapping[str, Any] = field(default_factory=dict)  # AlarmEvent's detail fields
 
 
 Detector = Callable[[Inputs, AlarmsConfig, bool], Finding | None]  # None: cannot judge now
@@ -70,14 +70,14 @@ Detector = Callable[[Inputs, AlarmsConfig, bool], Finding | None]  # None: canno
 class AlarmState:
     """Carried from scan to scan (the agent persists it as JSON)."""
 
-    active: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # type -> raised event
+    active: Mapping[str, AlarmEvent] = field(default_factory=dict)  # type -> its raised event
     baseline_scan_id: str | None = None
     last_volume_m3: float | None = None
     drift: Mapping[str, Any] = field(default_factory=dict)  # drift.DriftState.to_json()
 
     def to_json(self) -> dict[str, Any]:
         return {
-            "active": {k: dict(v) for k, v in self.active.items()},
+            "active": {k: v.to_json() for k, v in self.active.items()},
             "baseline_scan_id": self.baseline_scan_id,
             "last_volume_m3": self.last_volume_m3,
             "drift": dict(self.drift),
@@ -86,7 +86,7 @@ class AlarmState:
     @staticmethod
     def from_json(data: Mapping[str, Any]) -> AlarmState:
         return AlarmState(
-            active={str(k): dict(v) for k, v in (data.get("active") or {}).items()},
+            active={str(k): AlarmEvent.from_json(v) for k, v in (data.get("active") or {}).items()},
             baseline_scan_id=data.get("baseline_scan_id"),
             last_volume_m3=data.get("last_volume_m3"),
             drift=dict(data.get("drift") or {}),
@@ -191,7 +191,7 @@ def detect_collapse(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding 
         f"surface dropped {c.depth_m:.2f} m over {c.area_m2:.2f} m² at "
         f"({c.centroid[0]:.2f}, {c.centroid[1]:.2f}) against {inputs.baseline_scan_id}",
         {
-            "position": [round(c.centroid[0], 4), round(c.centroid[1], 4)],
+            "position": (round(c.centroid[0], 4), round(c.centroid[1], 4)),
             "area_m2": round(c.area_m2, 4),
             "depth_m": round(c.depth_m, 4),
             "volume_m3": round(c.volume_m3, 4),
@@ -315,18 +315,18 @@ def switched_off(cfg: AlarmsConfig) -> dict[str, str]:
 
 def clear_switched_off(
     state: AlarmState, cfg: AlarmsConfig, scan_id: str | None
-) -> tuple[list[dict[str, Any]], AlarmState]:
+) -> tuple[list[AlarmEvent], AlarmState]:
     """`cleared` events for the active alarms whose detector the config switched off (the
     agent calls it at start and on reload too, so a clear does not wait for the next scan)."""
     off = switched_off(cfg)
     events = [
-        {
-            "type": kind,
-            "state": "cleared",
-            "severity": raised.get("severity", "warning"),
-            "scan_id": scan_id,
-            "message": off[kind],
-        }
+        AlarmEvent(
+            type=kind,
+            state="cleared",
+            severity=raised.severity,
+            scan_id=scan_id,
+            message=off[kind],
+        )
         for kind, raised in state.active.items()
         if kind in off
     ]
@@ -336,17 +336,16 @@ def clear_switched_off(
     return events, replace(state, active=active)
 
 
-def _event(kind: str, state: str, finding: Finding, scan_id: str) -> dict[str, Any]:
-    """A `silo-alarm/1` event body (telemetry adds the envelope)."""
-    event: dict[str, Any] = {
-        "type": kind,
-        "state": state,
-        "severity": finding.severity,
-        "scan_id": scan_id,
-        "message": finding.message,
-    }
-    event.update(finding.details)
-    return event
+def _event(kind: str, state: AlarmStateName, finding: Finding, scan_id: str) -> AlarmEvent:
+    """The event of a detector's finding."""
+    return AlarmEvent(
+        type=kind,
+        state=state,
+        severity=finding.severity,
+        scan_id=scan_id,
+        message=finding.message,
+        **finding.details,
+    )
 
 
 def evaluate(
@@ -355,7 +354,7 @@ def evaluate(
     cfg: AlarmsConfig,
     detectors: Mapping[str, Detector] | None = None,
     calibration: CalibrationConfig | None = None,
-) -> tuple[list[dict[str, Any]], AlarmState]:
+) -> tuple[list[AlarmEvent], AlarmState]:
     """Events (`raised` / `cleared`, only on a change) and the state for the next scan.
 
     With `calibration`, the `calibration` alarm follows the calibration_drift detector
@@ -400,8 +399,8 @@ def _calibration_drift(
     inputs: Inputs,
     calibration: CalibrationConfig,
     previous: Mapping[str, Any],
-    active: dict[str, Mapping[str, Any]],
-    events: list[dict[str, Any]],
+    active: dict[str, AlarmEvent],
+    events: list[AlarmEvent],
 ) -> dict[str, Any]:
     """One drift_step; raise or clear the `calibration` alarm in `active` / `events`."""
     from silo_agent.analysis.drift import DEFAULT_GRAVITY_TOLERANCE_DEG, DriftState, drift_step

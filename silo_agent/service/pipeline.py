@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
+from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.alarms import AlarmState, Inputs, clear_switched_off, evaluate
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.atomic import write_atomic
@@ -60,7 +61,7 @@ class Outcome:
     error: str | None = None
     summary: ScanSummary | None = None
     directory: Path | None = None
-    events: list[dict[str, Any]] = field(default_factory=list)
+    events: list[AlarmEvent] = field(default_factory=list)
 
 
 class Pipeline:
@@ -220,7 +221,7 @@ class Pipeline:
             outcome=outcome,
             volume_m3=result.volume_m3,
             coverage=round(result.coverage, 4),
-            alarms=[f"{e['type']}:{e['state']}" for e in events],
+            alarms=[f"{e.type}:{e.state}" for e in events],
         )
         return Outcome(scan_id, outcome, result.invalid_reason, summary, directory, events)
 
@@ -303,14 +304,13 @@ class Pipeline:
         return Outcome(scan_id, "failed", reason, summary, None, events)
 
     def _publish(
-        self, summary: ScanSummary, result: Reconstruction, events: list[dict[str, Any]]
+        self, summary: ScanSummary, result: Reconstruction, events: list[AlarmEvent]
     ) -> None:
         self.telemetry.publish_result(summary, result.heightmap)
         for event in events:
             self.telemetry.publish_alarm(event)
-            log.warning(
-                "alarm", **{k: v for k, v in event.items() if k != "message"}, text=event["message"]
-            )
+            details = {k: v for k, v in event.to_json().items() if k != "message"}
+            log.warning("alarm", **details, text=event.message)
 
     def _count(self, outcome: str, summary: ScanSummary) -> None:
         m = self.metrics
@@ -337,7 +337,7 @@ class Pipeline:
             self.telemetry.publish_alarm(event)
             log.info(
                 "alarm cleared, its detector is switched off",
-                type=event["type"],
-                reason=event["message"],
+                type=event.type,
+                reason=event.message,
             )
         self.metrics.set_alarms(self.state.active)

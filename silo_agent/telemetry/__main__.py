@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import CONFIG_ERROR as EX_CONFIG
 from silo_agent.config import ConfigError, load_config
@@ -79,7 +80,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
         ):
             _emit(telemetry.topic(topic), env)
     if args.alarm:
-        event = json.loads(args.alarm.read_text(encoding="utf-8"))
+        event = AlarmEvent.from_json(json.loads(args.alarm.read_text(encoding="utf-8")))
         _emit(telemetry.topic("alarm"), telemetry.publish_alarm(event))
     return _send(telemetry, args.timeout)
 

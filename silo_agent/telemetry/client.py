@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from silo_agent import __version__
+from silo_agent.analysis.alarm_types import AlarmEvent, AlarmStateName
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import Config, MqttConfig, stale_after_s
 from silo_agent.grid.heightmap import HeightMap
@@ -130,19 +131,15 @@ class Telemetry:
         self.outbox.on_fault = self._outbox_fault
         self.outbox.announce()  # a disk that could not be written at open
 
-    def _outbox_fault(self, change: str, message: str) -> None:
+    def _outbox_fault(self, change: AlarmStateName, message: str) -> None:
         """The outbox could not write its database (full, read-only, deleted), or can again:
         the `outbox` alarm (its clearing waits while a corrupt copy waits for the operator)."""
         if change == "cleared" and self.outbox.corrupt_raised:
             return
         self.publish_alarm(
-            {
-                "type": "outbox",
-                "state": change,
-                "scan_id": None,
-                "severity": "warning",
-                "message": message,
-            }
+            AlarmEvent(
+                type="outbox", state=change, scan_id=None, severity="warning", message=message
+            )
         )
 
     def _report_outbox_damage(self) -> None:
@@ -159,13 +156,9 @@ class Telemetry:
             else "no corrupt outbox copy left"
         )
         self.publish_alarm(
-            {
-                "type": "outbox",
-                "state": change,
-                "scan_id": None,
-                "severity": "warning",
-                "message": message,
-            }
+            AlarmEvent(
+                type="outbox", state=change, scan_id=None, severity="warning", message=message
+            )
         )
 
     @classmethod
@@ -215,16 +208,16 @@ class Telemetry:
             self.state.status_dirty = True
         return env
 
-    def publish_alarm(self, event: dict) -> Envelope:
+    def publish_alarm(self, event: AlarmEvent) -> Envelope:
         """Queue an alarm event on `P/alarm` and the current state on `P/alarm/<type>`."""
         alarm_payload(Envelope.new(1), event)  # validate before anything is committed
         with self.state.lock:  # before the queue: a state snapshot must never be older than it
-            self._record_alarm(event["type"], event)
+            self._record_alarm(event.type, event)
         env = self._enqueue("alarm", lambda e: alarm_payload(e, event).to_bytes())
         with self.state.lock:
-            self.alarm_events.append({**event, "ts": env.ts})
+            self.alarm_events.append({**event.to_json(), "ts": env.ts})
         self._enqueue(
-            f"alarm/{event['type']}", lambda e: alarm_payload(e, event).to_bytes(), retain=True
+            f"alarm/{event.type}", lambda e: alarm_payload(e, event).to_bytes(), retain=True
         )
         if self.spb.enabled:
             with self.state.lock:
@@ -232,7 +225,7 @@ class Telemetry:
             self._enqueue_sparkplug(raw, new_metric)
         return env
 
-    def restore_alarms(self, active: Mapping[str, Mapping]) -> None:
+    def restore_alarms(self, active: Mapping[str, AlarmEvent]) -> None:
         """The raised alarms persisted by the last run (type -> its `raised` event): every
         birth and state snapshot from now on carries them instead of `cleared`."""
         with self.state.lock:
@@ -252,10 +245,10 @@ class Telemetry:
             self.spb_node.restore_result(volume)
             self.state.rebirth = True
 
-    def _record_alarm(self, alarm_type: str, event: Mapping) -> None:
+    def _record_alarm(self, alarm_type: str, event: AlarmEvent) -> None:
         """The state of `alarm_type` is now `event`; a new type is announced to HA (with the
         state lock held)."""
-        self.state.alarm_states[alarm_type] = dict(event)
+        self.state.alarm_states[alarm_type] = event
         if alarm_type not in self.state.alarm_types:
             self.state.alarm_types.append(alarm_type)
             self.state.ha_dirty = True
@@ -338,7 +331,7 @@ class Telemetry:
         with self.state.lock:
             return {
                 "cameras": [c.model_dump(mode="json") for c in self.state.cameras.values()],
-                "alarms": {k: dict(v) for k, v in self.state.alarm_states.items()},
+                "alarms": {k: v.to_json() for k, v in self.state.alarm_states.items()},
                 "events": list(self.alarm_events),
             }
 

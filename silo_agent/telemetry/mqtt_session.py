@@ -17,7 +17,7 @@ import structlog
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.analysis.alarm_types import ALARM_TYPES, AlarmEvent, idle_alarm
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.link import HEIGHTMAP_CONTENT_TYPE, JSON_LINK, Link
@@ -29,7 +29,6 @@ from silo_agent.telemetry.payloads import (
     OutboxState,
     StatusPayload,
     alarm_payload,
-    idle_alarm,
 )
 from silo_agent.telemetry.pump import publish_packet_size
 
@@ -57,7 +56,7 @@ class NodeState:
     lock: threading.Lock = field(default_factory=threading.Lock)
     last_scan_id: str | None = None
     alarm_types: list[str] = field(default_factory=lambda: list(ALARM_TYPES))
-    alarm_states: dict[str, dict] = field(
+    alarm_states: dict[str, AlarmEvent] = field(
         default_factory=lambda: {t: idle_alarm(t) for t in ALARM_TYPES}
     )
     live_map: tuple[bytes, float, int] | None = None  # payload, stale after, QoS
@@ -226,10 +225,10 @@ class Session:
         """The current state of every alarm type, retained, so a fresh subscriber (HA) never
         shows an alarm as unknown; the outbox sends later changes after these."""
         with self.state.lock:
-            states = [dict(e) for e in self.state.alarm_states.values()]
+            states = list(self.state.alarm_states.values())
         for event in states:
             payload = alarm_payload(self.outbox.next_envelope(), event).to_bytes()
-            link.publish_direct(self.me.topic(f"alarm/{event['type']}"), payload, retain=True)
+            link.publish_direct(self.me.topic(f"alarm/{event.type}"), payload, retain=True)
 
     def _publish_discovery(self, link: Link) -> None:
         ha = self.cfg.homeassistant

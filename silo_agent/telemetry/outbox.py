@@ -29,6 +29,7 @@ from typing import TypeVar
 
 import structlog
 
+from silo_agent.analysis.alarm_types import AlarmStateName
 from silo_agent.base.atomic import write_atomic
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry.payloads import Envelope
@@ -145,8 +146,8 @@ class Outbox:
         self.state_path = self.path.with_name(self.path.name + ".state.json")
         self.moved_aside: Path | None = None  # where a corrupt outbox went at open, if it was
         self.fault: str | None = None  # why the queue is held in memory, not on disk
-        self.on_fault: Callable[[str, str], None] | None = None  # ("raised"|"cleared", why)
-        self._events: list[tuple[str, str]] = []  # fault changes not yet announced
+        self.on_fault: Callable[[AlarmStateName, str], None] | None = None  # change, why
+        self._events: list[tuple[AlarmStateName, str]] = []  # fault changes not announced yet
         self._lock = threading.Lock()
         self._identity: tuple[int, int] | None = None  # (device, inode) of the open file
         self._tended_at = 0.0
@@ -279,9 +280,10 @@ class Outbox:
         """The `outbox` alarm raised for a corrupt database moved aside is still on."""
         return bool(self._state.get("corrupt_alarm"))
 
-    def corrupt_alarm_change(self) -> str | None:
+    def corrupt_alarm_change(self) -> AlarmStateName | None:
         """ "raised" when a corrupt outbox was just moved aside, "cleared" at the first start
         after the alarm was raised that finds no moved-aside copy left, else None."""
+        change: AlarmStateName
         if self.moved_aside is not None:
             change, flag = "raised", 1
         elif self._state["corrupt_alarm"] and not list(

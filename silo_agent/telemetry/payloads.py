@@ -16,6 +16,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.summary import ScanSummary
 
 SAFE_NAME = r"^[A-Za-z0-9_-]+$"
@@ -256,20 +257,9 @@ def scan_payload(env: Envelope, summary: ScanSummary) -> ScanPayload:
     )
 
 
-def idle_alarm(alarm_type: str) -> dict:
-    """The state body of an alarm type that is not raised (nothing raised it yet)."""
-    return {
-        "type": alarm_type,
-        "state": "cleared",
-        "severity": "info",
-        "scan_id": None,
-        "message": "not raised",
-    }
-
-
-def alarm_payload(env: Envelope, event: dict) -> AlarmPayload:
-    """An alarm event dict (alarms.py) with the envelope added."""
-    return AlarmPayload(**env.model_dump(), **event)
+def alarm_payload(env: Envelope, event: AlarmEvent) -> AlarmPayload:
+    """An alarm event with the envelope added."""
+    return AlarmPayload(**env.model_dump(), **event.to_json())
 
 
 def check_summary(summary: ScanSummary) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 
 from google.protobuf.message import DecodeError
 
-from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.analysis.alarm_types import ALARM_TYPES, AlarmEvent
 from silo_agent.telemetry import sparkplug_b_pb2 as pb
 
 NAMESPACE = "spBv1.0"
@@ -170,8 +170,8 @@ class SparkplugNode:
         """NDATA of a result: `volume` is its `P/volume` payload's JSON fields."""
         return self._data(*_result_values(volume))
 
-    def data_from_alarm(self, event: dict) -> tuple[bytes, bool]:
-        return self._data({alarm_metric(event["type"]): event["state"] == "raised"}, now_ms())
+    def data_from_alarm(self, event: AlarmEvent) -> tuple[bytes, bool]:
+        return self._data({alarm_metric(event.type): event.state == "raised"}, now_ms())
 
     def data_from_cameras(self, states: dict[str, str]) -> tuple[bytes, bool]:
         return self._data({camera_metric(s): v for s, v in states.items()}, now_ms())
