@@ -12,7 +12,7 @@ import stat
 import tempfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from silo_agent.base.atomic import publish_directory
+from silo_agent.base.choices import DEFAULT_MAX_DEPTH_M, DEFAULT_MIN_DEPTH_M
 from silo_agent.base.limits import (
     MAX_CLOUD_POINTS,
     MAX_MANIFEST_BYTES,
@@ -73,6 +74,7 @@ class CameraCloud:
     intrinsics: dict[str, Any] | None = None
     colors: np.ndarray | None = None  # (N, 3) uint8
     extra: dict[str, Any] = field(default_factory=dict)  # firmware, gravity, frames, ...
+    not_measurements: int = 0  # points of the cloud file dropped when read (`measured_only`)
 
     def points_in_silo(self) -> np.ndarray:
         """(N, 3) float32 points in the silo frame.
@@ -103,6 +105,38 @@ class Scan:
     cameras: list[CameraCloud]
     reconstruction: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)  # truth, result, version, ...
+
+
+def depth_range_of(camera: CameraCloud) -> tuple[float, float]:
+    """(near, far) depth limits of the camera's sensor model: its manifest's `depth_range_m`
+    (what its capture's threshold filter kept), else the D455's defaults."""
+    value = camera.extra.get("depth_range_m")
+    if value is None:
+        return DEFAULT_MIN_DEPTH_M, DEFAULT_MAX_DEPTH_M
+    return float(value[0]), float(value[1])
+
+
+def measured_only(camera: CameraCloud) -> CameraCloud:
+    """`camera` without the points that are not measurements, counted in `not_measurements`.
+
+    Exporters write "no return" as (0, 0, 0) or NaN, and a depth past the sensor's range is
+    noise, not surface: a raw export with 243,517 origin points read 6 % high at 5 mm. Kept:
+    finite points in front of the camera (z > 0) within its depth range (z along the axis,
+    as the D455 measures it and its threshold filter cuts)."""
+    near, far = depth_range_of(camera)
+    points = camera.points
+    z = points[:, 2]
+    keep = np.isfinite(points).all(axis=1) & (z > 0.0) & (z >= near) & (z <= far)
+    dropped = len(points) - int(np.count_nonzero(keep))
+    if dropped == 0:
+        return camera
+    colors = camera.colors[keep] if camera.colors is not None else None
+    return replace(
+        camera,
+        points=points[keep],
+        colors=colors,
+        not_measurements=camera.not_measurements + dropped,
+    )
 
 
 # ---------------------------------------------------------------- manifest schema
@@ -147,6 +181,14 @@ class _Camera(_Open):
     cloud: str
     extrinsic: list[list[float]]
     intrinsics: _Intrinsics | None = None
+    depth_range_m: tuple[float, float] | None = None
+
+    @field_validator("depth_range_m")
+    @classmethod
+    def _near_below_far(cls, value: tuple[float, float] | None) -> tuple[float, float] | None:
+        if value is not None and not 0.0 <= value[0] < value[1]:
+            raise ValueError(f"must be [near, far] with 0 <= near < far, got {list(value)}")
+        return value
 
     @field_validator("cloud")
     @classmethod
@@ -290,7 +332,8 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a binary little-endian PLY cloud: (points (N,3) float32, colours (N,3) uint8 | None).
 
     The header is read first and the body only when the file's size is what it announces,
-    so a wrong or endless file costs no more than the header."""
+    so a wrong or endless file costs no more than the header. Points come back as stored,
+    NaN and all: `read_scan` drops those that are not measurements (`measured_only`)."""
     with _open_regular(path) as handle:
         try:
             start = handle.read(MAX_PLY_HEADER_BYTES)
@@ -327,10 +370,6 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         points = data.view("<f4").reshape(count, 3).astype(np.float32)
     else:
         points = np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32)
-    bad = ~np.isfinite(points).all(axis=1)
-    if np.any(bad):
-        first = int(np.argmax(bad))
-        raise ScanError(f"{path}: {int(bad.sum())} points are NaN or infinite (first: #{first})")
     names = dtype.names or ()
     colors = None
     if all(c in names for c in ("red", "green", "blue")):
@@ -413,16 +452,15 @@ def read_scan(directory: str | Path) -> Scan:
                 f"{directory}: more than the limit of {MAX_SCAN_POINTS:,} points in "
                 f"all clouds together (at {camera.cloud})"
             )
-        cameras.append(
-            CameraCloud(
-                serial=camera.serial,
-                points=points,
-                extrinsic=np.asarray(camera.extrinsic, dtype=float),
-                intrinsics=raw_camera.get("intrinsics"),
-                colors=colors,
-                extra={k: v for k, v in raw_camera.items() if k not in known},
-            )
+        cloud = CameraCloud(
+            serial=camera.serial,
+            points=points,
+            extrinsic=np.asarray(camera.extrinsic, dtype=float),
+            intrinsics=raw_camera.get("intrinsics"),
+            colors=colors,
+            extra={k: v for k, v in raw_camera.items() if k not in known},
         )
+        cameras.append(measured_only(cloud))
     top = {"format", "scan_id", "captured_at", "silo_id", "site", "reconstruction", "cameras"}
     return Scan(
         scan_id=manifest.scan_id,

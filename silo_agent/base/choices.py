@@ -17,6 +17,11 @@ DEFAULT_GRID_STEP_M = 0.02
 DEFAULT_GRAIN: Grain = "wheat"
 DEFAULT_LAYOUT: Layout = "paper"
 
+# The D455 sensor model's depth range (metres along the optical axis): the capture's threshold
+# filter, and what a scan reader keeps of a cloud whose manifest does not give its own range.
+DEFAULT_MIN_DEPTH_M = 0.3
+DEFAULT_MAX_DEPTH_M = 10.0
+
 # The simulator's camera positions (the paper's A1-A8: midpoints A1 A3 A5 A7, corners A2 A4 A6
 # A8, counter-clockwise from the middle of the -y side); a sim camera's `view` names one.
 VIEW_NAMES: tuple[str, ...] = ("A1", "A2", "A3", "A4", "A5", "A6", "A7", "A8")

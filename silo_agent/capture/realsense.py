@@ -25,7 +25,7 @@ import structlog
 from silo_agent.capture import CaptureError
 from silo_agent.config import CameraConfig, Config
 from silo_agent.grid.geometry import gravity_angle_deg
-from silo_agent.scan import CameraCloud
+from silo_agent.scan import CameraCloud, measured_only
 
 log = structlog.get_logger(__name__)
 
@@ -322,7 +322,7 @@ class RealSenseCamera:
             colors = _colors_at(frames.color, index, frames.depth.shape)
         if extra["imu_present"]:
             extra.update(self._gravity())
-        return CameraCloud(
+        cloud = CameraCloud(
             serial=self.serial,
             points=points,
             extrinsic=self._extrinsic,
@@ -330,6 +330,7 @@ class RealSenseCamera:
             colors=colors,
             extra=extra,
         )
+        return measured_only(cloud)  # as read back from the audit cache, to the bit
 
     def _filters(self) -> list[rs.filter]:
         """librealsense's recommended chain; disparity domain for the edge-preserving filters."""
@@ -412,6 +413,7 @@ class RealSenseCamera:
             "warmup_frames": cam.warmup_frames,
             "aggregation": cam.aggregation,
             "filters": [type(step).__name__ for step in self._filters()],
+            "depth_range_m": [cam.min_depth_m, cam.max_depth_m],
             "imu_present": _has_imu(device),
         }
         usb = _info(device, rs.camera_info.usb_type_descriptor)

@@ -15,6 +15,8 @@ from pydantic import (
 from silo_agent.base.choices import (
     DEFAULT_GRAIN,
     DEFAULT_LAYOUT,
+    DEFAULT_MAX_DEPTH_M,
+    DEFAULT_MIN_DEPTH_M,
     VIEW_NAMES,
     Grain,
     Layout,
@@ -51,8 +53,12 @@ class CameraConfig(Strict):
     laser_power_mw: float | None = Field(
         default=None, ge=0, description="projector power; None keeps the device's default"
     )
-    min_depth_m: float = Field(default=0.3, ge=0, description="threshold filter: nearer is dropped")
-    max_depth_m: float = Field(default=10.0, gt=0, description="threshold filter: farther dropped")
+    min_depth_m: float = Field(
+        default=DEFAULT_MIN_DEPTH_M, ge=0, description="threshold filter: nearer is dropped"
+    )
+    max_depth_m: float = Field(
+        default=DEFAULT_MAX_DEPTH_M, gt=0, description="threshold filter: farther dropped"
+    )
     decimation: int = Field(default=1, ge=1, le=8, description="decimation factor; 1 = off")
     spatial_filter: bool = Field(default=True, description="edge-preserving spatial smoothing")
     temporal_filter: bool = Field(default=True, description="smoothing over successive frames")

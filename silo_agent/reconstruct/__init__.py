@@ -322,7 +322,11 @@ def _result(
         invalid_reason=reason,
         heightmap=heightmap,
         cameras=[c.serial for c in scan.cameras],
-        points={"raw": fused.raw_count, "in_region": len(fused.points)},
+        points={
+            "raw": fused.raw_count,
+            "not_measurements": sum(c.not_measurements for c in scan.cameras),
+            "in_region": len(fused.points),
+        },
         parameters=parameters,
         timings_s=clock.laps,
     )

@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 import numpy as np
 
 from silo_agent.grid.geometry import gravity_angle_deg
-from silo_agent.scan import CameraCloud, Scan
+from silo_agent.scan import CameraCloud, Scan, measured_only
 from silo_agent.sim.camera import Frame, Intrinsics, NoiseModel, d455_intrinsics, expose, trace
 from silo_agent.sim.layouts import perturb, view_pose
 from silo_agent.sim.mesh import build_world
@@ -100,7 +100,7 @@ class SimRig:
 
     def cloud(self, view: SimView, seed: int, color: bool = False) -> CameraCloud:
         points, colors = self.frames(view, seed, color=color)[0].points()
-        return CameraCloud(
+        cloud = CameraCloud(
             serial=view.serial,
             points=points,
             extrinsic=view.nominal,
@@ -109,9 +109,11 @@ class SimRig:
             extra={
                 "sim_view": view.key,
                 "sim_true_extrinsic": view.true.tolist(),
+                "depth_range_m": [self.noise.min_depth_m, self.noise.max_depth_m],
                 **gravity_reading(view),
             },
         )
+        return measured_only(cloud)  # as a reader of the scan will see it
 
 
 def plan_views(
