@@ -31,8 +31,10 @@ SLOW = ("alpha", "poisson")  # run in a killable child under the time budget
 CC = "cloudcompare"
 STEPS = (0.1, 0.075, 0.05, 0.025, 0.01)
 VIEWS = ("A1A5", "A1A4A6", "A1A3A5A7")
-SCENES = ("cone", "piles", "ridge", "crater", "full")
-BAY_SCENES = ("crater", "full")  # 6 x 6 m: the slowest groups, started first
+SCENES = ("cone", "piles", "ridge", "crater", "full", "bay-cone")
+DEFAULT_SCENES = SCENES[:5]  # the paper's open floor and the bay; bay-cone on request
+BAY_SCENES = ("crater", "full", "bay-cone")  # 6 x 6 m: the slowest groups, started first
+FILLS = ("membrane", "bspline", "repose")
 CALIBS: dict[str, tuple[float, float]] = {
     "none": (0.0, 0.0),
     "0.1°/3mm": (0.1, 0.003),
@@ -71,8 +73,10 @@ def split_views(combo: str) -> list[str]:
 
 
 def _volume(scan: Scan, method: str, step: float) -> float | None:
-    settings = ReconstructionConfig.model_validate({"grid_step_m": step, "method": method})
-    return reconstruct(scan, settings).volume_m3
+    """`method` is a method's name, or bicm/FILL for bicm with that fill."""
+    base, _, fill = method.partition("/")
+    chosen = {"grid_step_m": step, "method": base} | ({"fill": fill} if fill else {})
+    return reconstruct(scan, ReconstructionConfig.model_validate(chosen)).volume_m3
 
 
 def run_group(
@@ -263,6 +267,38 @@ def summary_table(rows: list[Row], methods: Sequence[str], title: str) -> list[s
     return lines
 
 
+def per_scan_table(rows: list[Row], methods: Sequence[str], steps: Sequence[float]) -> list[str]:
+    """Every scan's signed error at each step and its spread, for the bicm methods."""
+    shown = [m for m in methods if m.startswith("bicm")]
+    lines = [
+        "## (e) Every scan across grid steps",
+        "",
+        "Signed error (%) at each step; spread = largest minus smallest (pp).",
+        "",
+        "| scene | views | seed | calibration | method | "
+        + " | ".join(f"{s:g} m" for s in steps)
+        + " | spread pp |",
+        "|---" * (len(steps) + 6) + "|",
+    ]
+    scans = sorted({(r.scene, r.views, r.seed, r.calib) for r in rows})
+    for scene, views, seed, calib in scans:
+        for m in shown:
+            at = {
+                r.step: r.error_pct
+                for r in rows
+                if (r.scene, r.views, r.seed, r.calib, r.method) == (scene, views, seed, calib, m)
+            }
+            errors = [e for e in at.values() if e is not None]
+            if not errors:
+                continue
+            cells = [fmt(e, "+.2f") if (e := at.get(s)) is not None else "—" for s in steps]
+            spread = fmt(max(errors) - min(errors), ".2f")
+            lines.append(
+                f"| {scene} | {views} | {seed} | {calib} | {m} | {' | '.join(cells)} | {spread} |"
+            )
+    return [*lines, ""]
+
+
 def skipped_note(rows: list[Row], budget_s: float) -> list[str]:
     """Footnote: every cell that has no volume and why."""
     counts: dict[tuple[str, float, str], int] = defaultdict(int)
@@ -330,9 +366,9 @@ def plot(rows: list[Row], methods: Sequence[str], steps: Sequence[float], path: 
             ax.plot(
                 xs,
                 ys,
-                marker="D" if m == "bicm" else "o",
+                marker="D" if m.startswith("bicm") else "o",
                 label=m,
-                linewidth=2.5 if m == "bicm" else 1.2,
+                linewidth=2.5 if m.startswith("bicm") else 1.2,
             )
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -382,6 +418,8 @@ def report(
     for scene in scenes:
         lines += summary_table([r for r in rows if r.scene == scene], methods, f"### {scene}")
     lines += timing_table(rows, methods, args.steps)
+    if args.per_scan:
+        lines += per_scan_table(rows, methods, args.steps)
     lines += skipped_note(rows, args.budget)
     slow = [m for m in methods if m in SLOW]
     if slow and args.slow_seeds < args.seeds:
@@ -397,7 +435,12 @@ def report(
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenes", type=lambda s: s.split(","), default=list(SCENES))
+    p.add_argument(
+        "--scenes",
+        type=lambda s: s.split(","),
+        default=list(DEFAULT_SCENES),
+        help=f"comma list of {', '.join(SCENES)} (default all but bay-cone)",
+    )
     p.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 (default 2)")
     p.add_argument("--steps", type=lambda s: [float(x) for x in s.split(",")], default=list(STEPS))
     p.add_argument(
@@ -405,6 +448,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         type=lambda s: s.split(","),
         default=[*METHODS, CC],
         help=f"comma list of {', '.join([*METHODS, CC])}",
+    )
+    p.add_argument(
+        "--fills",
+        type=lambda s: s.split(","),
+        default=[],
+        help=f"bicm once per fill, as bicm/FILL (comma list of {', '.join(FILLS)}); default"
+        " bicm with the configured fill",
+    )
+    p.add_argument(
+        "--per-scan",
+        action="store_true",
+        help="also list every scan's error at each step and its spread (bicm methods)",
     )
     p.add_argument("--views", type=lambda s: s.split(","), default=list(VIEWS))
     p.add_argument(
@@ -442,9 +497,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         ({*args.methods} - {*METHODS, CC})
         | ({*args.calibs} - {*CALIBS})
         | ({*args.scenes} - {*SCENES})
+        | ({*args.fills} - {*FILLS})
     )
     if unknown:
-        p.error(f"unknown method, calibration or scene: {', '.join(sorted(unknown))}")
+        p.error(f"unknown method, calibration, scene or fill: {', '.join(sorted(unknown))}")
     args.steps = sorted(args.steps, reverse=True)
     return args
 
@@ -452,6 +508,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> None:
     args = parse_args(argv)
     methods = [m for m in [*METHODS, CC] if m in args.methods]
+    if args.fills and "bicm" in methods:
+        at = methods.index("bicm")
+        methods[at : at + 1] = [f"bicm/{fill}" for fill in args.fills]
     start = time.perf_counter()
     rows: list[Row] = []
     with (

@@ -25,7 +25,7 @@ def make_scan(k: int, points: int = 2000, when: datetime | None = None) -> Scan:
     clouds = [
         CameraCloud(
             serial=f"cam-{c}",
-            points=rng.normal(0, 1, (points, 3)).astype(np.float32),
+            points=(rng.normal(0, 1, (points, 3)) * [1, 1, 0.2] + [0, 0, 3]).astype(np.float32),
             extrinsic=np.eye(4),
         )
         for c in range(2)

@@ -17,6 +17,11 @@ DEFAULT_GRID_STEP_M = 0.02
 DEFAULT_GRAIN: Grain = "wheat"
 DEFAULT_LAYOUT: Layout = "paper"
 
+# Angle of repose (degrees) per grain: the steepest a free grain surface stands, which shapes
+# the simulator's piles and bounds the reconstruction's fill of unseen cells. design.md's
+# ranges (wheat 25-27, rice 30-40: the middle of the range).
+REPOSE_DEG: dict[str, float] = {"wheat": 26.0, "corn": 23.0, "soybeans": 25.0, "rice": 35.0}
+
 # The D455 sensor model's depth range (metres along the optical axis): the capture's threshold
 # filter, and what a scan reader keeps of a cloud whose manifest does not give its own range.
 DEFAULT_MIN_DEPTH_M = 0.3

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import (
@@ -9,8 +10,11 @@ from pydantic import (
 )
 
 from silo_agent.base.choices import (
+    DEFAULT_GRAIN,
     DEFAULT_GRID_STEP_M,
     DEFAULT_METHOD,
+    REPOSE_DEG,
+    Grain,
     Method,
 )
 from silo_agent.config.base import Strict
@@ -31,8 +35,14 @@ class ReconstructionConfig(Strict):
         default=None, ge=1, description="smallest cluster kept; default relative to the cell"
     )
     max_clusters: int = Field(default=2, ge=1, le=8)
-    fill: Literal["membrane", "bspline"] = Field(
-        default="membrane", description="how empty cells are filled (reconstruct/fill.py)"
+    fill: Literal["membrane", "bspline", "repose"] = Field(
+        default="repose", description="how empty cells are filled (reconstruct/fill.py)"
+    )
+    grain: Grain = Field(
+        default=DEFAULT_GRAIN, description="what is stored: its angle of repose bounds the fill"
+    )
+    repose_deg: float | None = Field(
+        default=None, gt=0, lt=90, description="angle of repose; default the grain's"
     )
     slope_correction: bool = True
     min_coverage: float = Field(default=0.3, ge=0, le=1)
@@ -40,3 +50,9 @@ class ReconstructionConfig(Strict):
         default=None, gt=0, description="alpha baseline radius; default 4 x grid step"
     )
     poisson_depth: int = Field(default=8, ge=4, le=12)
+
+    @property
+    def repose_slope(self) -> float:
+        """Rise per metre of the steepest free grain surface (`repose_deg`, or the grain's)."""
+        angle = self.repose_deg if self.repose_deg is not None else REPOSE_DEG[self.grain]
+        return math.tan(math.radians(angle))

@@ -29,7 +29,7 @@ from silo_agent.grid.volume import (
     surface_levels,
 )
 from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
-from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
+from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
 from silo_agent.scan import Scan, Site
@@ -233,12 +233,23 @@ def reconstruct(
         "slope_correction": settings.slope_correction,
         "fill": settings.fill,
     }
+    if settings.fill == "repose":
+        parameters["repose_deg"] = round(float(np.degrees(np.arctan(settings.repose_slope))), 3)
     if not np.any(observed):
         result = _result(scan, site, settings, grid, fused, None, observed, None, parameters, clock)
         result.registration = registration
         return result
     if settings.fill == "bspline":
         filled = bspline_fill(cells.height, observed)
+    elif settings.fill == "repose":
+        filled = repose_fill(
+            cells.height,
+            observed,
+            grid.inside > 0,
+            settings.repose_slope,
+            grid.step,
+            level_floor=site.base == "floor",
+        )
     else:
         filled = membrane_fill(cells.height, observed, grid.inside > 0)
     filled, observed = _without_spikes(grid, filled, observed, cells.double_surface_m)

@@ -1,4 +1,5 @@
-"""Filling of empty cells: the paper's B-spline interpolation (2.3.6) and a membrane fill.
+"""Filling of empty cells: the paper's B-spline interpolation (2.3.6), a membrane fill, and the
+membrane held to the grain's angle of repose.
 
 `bspline_fill`: a pyramid of coverage-weighted averages is built by B-spline low-pass and
 decimation ("pull"); coming back down, each level keeps its own estimate where it has data
@@ -7,11 +8,14 @@ Observed cells keep their measured value exactly; the fill is smooth and continu
 them. Cost O(cells). Its coarse levels average over wide areas, so a floor hole beside a pile
 borrows pile height.
 
-`membrane_fill` (default): the harmonic surface of each hole's own boundary. Its 5-point
+`membrane_fill`: the harmonic surface of each hole's own boundary. Its 5-point
 Laplace equations are solved in numpy, without assembling a matrix: conjugate gradients
 started from the solution on a grid twice as coarse (itself solved the same way, down to a
-small dense system), so every scan's fill runs without importing scipy. bench/accuracy.py
-compares both fills.
+small dense system), so every scan's fill runs without importing scipy.
+
+`repose_fill` (default): the membrane, capped by the level surface that rises gently from the
+known cells around a hole and raised to the flank that falls from the visible crest at the
+angle of repose (`repose_bounds`). bench/accuracy.py compares the three fills (`--fills`).
 """
 
 from __future__ import annotations
@@ -215,3 +219,147 @@ def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> 
     rtol = _EXACT_RTOL if count <= _EXACT_MAX_UNKNOWNS else _LARGE_RTOL
     np.put(out, system.cells, _conjugate_gradients(system, guess, rtol, _MAX_ITERATIONS))
     return out
+
+
+REPOSE_BLOCK_M = 0.1  # the repose bounds are computed on blocks about this size
+LEVEL_SLOPE = 0.02  # a level surface (a floor, levelled grain) rises no more than 2 %
+_PAIRS_PER_CHUNK = 1 << 20  # (target, source) distances held at once
+
+
+def _block_sums(values: np.ndarray, k: int) -> np.ndarray:
+    """Sums over k x k blocks (the grid padded with zeros to a multiple of k)."""
+    rows, cols = values.shape
+    padded = np.pad(values, ((0, -rows % k), (0, -cols % k)))
+    return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).sum(axis=(1, 3))
+
+
+def _grown(mask: np.ndarray) -> np.ndarray:
+    """`mask` and its eight neighbours."""
+    rows, cols = mask.shape
+    padded = np.pad(mask, 1)
+    out = np.zeros_like(mask)
+    for dr in range(3):
+        for dc in range(3):
+            out |= padded[dr : dr + rows, dc : dc + cols]
+    return out
+
+
+def _envelope(
+    target: tuple[np.ndarray, np.ndarray],
+    source: tuple[np.ndarray, np.ndarray],
+    height: np.ndarray,
+    slope: float,
+    upper: bool,
+) -> np.ndarray:
+    """At each target: min over sources of height + slope * distance (`upper`), or max of
+    height - slope * distance; positions in any unit `slope` is per. In chunks of targets,
+    which bound the memory (a loop over chunks, not cells)."""
+    ty, tx = target
+    sy, sx = source
+    out = np.empty(len(ty))
+    chunk = max(1, _PAIRS_PER_CHUNK // max(1, len(sy)))
+    for start in range(0, len(ty), chunk):
+        at = slice(start, start + chunk)
+        reach = np.hypot(ty[at, None] - sy, tx[at, None] - sx)
+        reach *= slope
+        if upper:
+            reach += height
+            out[at] = reach.min(axis=1)
+        else:
+            np.subtract(height, reach, out=reach)
+            out[at] = reach.max(axis=1)
+    return out
+
+
+def repose_bounds(
+    height: np.ndarray, known: np.ndarray, unknown: np.ndarray, slope: float, step: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, level) for every `unknown` cell, from the known cells around its hole.
+
+    Grain stands no steeper than its angle of repose: a surface at distance d from a known
+    height h lies no lower than h - slope * d, so below the crest of a pile an unseen flank
+    falls no faster than the repose slope (`lower`). `level` is the least surface rising from
+    the known cells at LEVEL_SLOPE: what a level surface (a floor, levelled grain) reaches.
+    The sources are the known blocks of about REPOSE_BLOCK_M around each hole (block means at
+    their cells' centroid: one noisy cell must not set a bound; a block farther inside bounds
+    no more than those between it and the hole do on a surface no steeper than repose). A
+    source steeper than repose above its neighbours is not grain (wall points carried in by
+    depth noise, a post): for `lower` each source is first lowered to the largest
+    repose-steep surface under all of them, for `level` raised to the least above. Computed on
+    the blocks and interpolated bilinearly to the cells: the same at every grid step.
+    """
+    k = max(1, round(REPOSE_BLOCK_M / step))
+    rows, cols = np.indices(known.shape, dtype=np.float64)
+    count = _block_sums(known.astype(np.float64), k)
+    hole = _block_sums(unknown.astype(np.float64), k) > k * k / 2  # a scattered cell is no hole
+    is_source = (count >= k * k / 2) & _grown(hole)
+    cells = np.nonzero(unknown)
+    if not np.any(is_source):
+        unbounded = np.full(len(cells[0]), np.inf)
+        return -unbounded, unbounded
+    n = count[is_source]
+    source_height = _block_sums(np.where(known, height, 0.0), k)[is_source] / n
+    # source positions in cells: the centroid of each block's known cells
+    source = (
+        _block_sums(np.where(known, rows, 0.0), k)[is_source] / n,
+        _block_sums(np.where(known, cols, 0.0), k)[is_source] / n,
+    )
+    block_rows, block_cols = np.nonzero(_grown(hole))
+    centres = ((block_rows + 0.5) * k - 0.5, (block_cols + 0.5) * k - 0.5)
+    cell_slope = slope * step
+    under = _envelope(source, source, source_height, cell_slope, upper=True)
+    over = _envelope(source, source, source_height, cell_slope, upper=False)
+    lower = np.full(count.shape, np.nan)
+    level = np.full(count.shape, np.nan)
+    lower[block_rows, block_cols] = _envelope(centres, source, under, cell_slope, upper=False)
+    level[block_rows, block_cols] = _envelope(centres, source, over, LEVEL_SLOPE * step, upper=True)
+    lower_cells = _bilinear(lower, *cells, k)
+    level_cells = _bilinear(level, *cells, k)
+    return np.where(np.isnan(lower_cells), -np.inf, lower_cells), np.where(
+        np.isnan(level_cells), np.inf, level_cells
+    )
+
+
+def _bilinear(blocks: np.ndarray, rows: np.ndarray, cols: np.ndarray, k: int) -> np.ndarray:
+    """Block values interpolated at cells (rows, cols) between the block centres (NaN where
+    a block around is NaN)."""
+
+    def axis(cells: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        position = np.clip((cells + 0.5) / k - 0.5, 0.0, size - 1.0)
+        low = np.minimum(np.floor(position).astype(np.intp), size - 1)
+        return low, np.minimum(low + 1, size - 1), position - low
+
+    r0, r1, wr = axis(rows, blocks.shape[0])
+    c0, c1, wc = axis(cols, blocks.shape[1])
+    top = blocks[r0, c0] * (1 - wc) + blocks[r0, c1] * wc
+    bottom = blocks[r1, c0] * (1 - wc) + blocks[r1, c1] * wc
+    return top * (1 - wr) + bottom * wr
+
+
+def repose_fill(
+    height: np.ndarray,
+    known: np.ndarray,
+    domain: np.ndarray,
+    slope: float,
+    step: float,
+    level_floor: bool = True,
+) -> np.ndarray:
+    """The membrane fill, held to what grain at its angle of repose allows.
+
+    A membrane across an unseen area is a soap film: it sags under a pile's unseen flank (a
+    cone is not harmonic) and bulges over the floor in a pile's shadow, borrowing the pile's
+    height. Grain either lies level or stands at its angle of repose: the fill is the
+    membrane, no higher than a level surface from the known cells reaches, and no lower than
+    the flank that continues from the visible crest at the repose slope. `level_floor`: the
+    ground under the grain is level (a floor); on sloping ground (`base = "boundary"`) a level
+    surface is no cap and only the repose flank applies.
+    """
+    filled = membrane_fill(height, known, domain)
+    unknown = domain & ~known
+    if not np.any(unknown):
+        return filled
+    lower, level = repose_bounds(height, known & domain, unknown, slope, step)
+    membrane = filled[unknown]
+    capped = np.minimum(membrane, level) if level_floor else membrane
+    filled[unknown] = np.maximum(capped, lower)
+    return filled

@@ -1,6 +1,6 @@
 """Grain types: the angle of repose shapes the piles, the bulk density turns volume into tonnes.
 
-Values from design.md (wheat 25-27 deg, rice 30-40 deg: the middle of the range is used).
+Angles of repose from base/choices.REPOSE_DEG (the reconstruction's fill uses the same).
 """
 
 from __future__ import annotations
@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from silo_agent.base.choices import REPOSE_DEG
 
 
 @dataclass(frozen=True)
@@ -24,10 +26,10 @@ class Grain:
 
 
 GRAINS: dict[str, Grain] = {
-    "wheat": Grain("wheat", 26.0, 0.77, (196, 160, 96)),
-    "corn": Grain("corn", 23.0, 0.72, (226, 178, 52)),
-    "soybeans": Grain("soybeans", 25.0, 0.77, (210, 190, 130)),
-    "rice": Grain("rice", 35.0, 0.58, (200, 170, 110)),
+    "wheat": Grain("wheat", REPOSE_DEG["wheat"], 0.77, (196, 160, 96)),
+    "corn": Grain("corn", REPOSE_DEG["corn"], 0.72, (226, 178, 52)),
+    "soybeans": Grain("soybeans", REPOSE_DEG["soybeans"], 0.77, (210, 190, 130)),
+    "rice": Grain("rice", REPOSE_DEG["rice"], 0.58, (200, 170, 110)),
 }
 
 
