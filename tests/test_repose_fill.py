@@ -16,6 +16,11 @@ def _grid(step: float, half: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(centres, centres)
 
 
+def _points(known: np.ndarray, step: float) -> np.ndarray:
+    """Points per cell of a surface seen at 40,000 points per m² where it is known."""
+    return np.where(known, max(1, round(40_000 * step**2)), 0)
+
+
 def _cone(x: np.ndarray, y: np.ndarray, radius: float = 1.4) -> np.ndarray:
     return SLOPE * np.maximum(radius - np.hypot(x, y), 0.0)
 
@@ -29,7 +34,7 @@ def test_an_unseen_flank_continues_the_crest_at_the_repose_slope() -> None:
     domain = np.ones_like(unseen)
     known = ~unseen
 
-    repose = repose_fill(truth, known, domain, SLOPE, step)
+    repose = repose_fill(truth, known, domain, _points(known, step), SLOPE, step)
     membrane = membrane_fill(truth, known, domain)
 
     repose_error = np.sum(repose[unseen] - truth[unseen]) * step**2
@@ -46,7 +51,7 @@ def test_the_floor_in_a_piles_shadow_stays_floor() -> None:
     shadow = (y < -1.1) & (np.abs(x) < 1.0)  # behind the pile, out to the region's edge
     domain = np.ones_like(shadow)
 
-    repose = repose_fill(truth, ~shadow, domain, SLOPE, step)
+    repose = repose_fill(truth, ~shadow, domain, _points(~shadow, step), SLOPE, step)
     membrane = membrane_fill(truth, ~shadow, domain)
 
     membrane_bulge = np.mean(membrane[shadow] - truth[shadow])
@@ -63,7 +68,7 @@ def test_a_hole_in_level_grain_is_filled_level() -> None:
     hole = np.hypot(x - 0.3, y) < 0.8
     domain = np.ones_like(hole)
 
-    filled = repose_fill(truth, ~hole, domain, SLOPE, step)
+    filled = repose_fill(truth, ~hole, domain, _points(~hole, step), SLOPE, step)
 
     assert np.max(np.abs(filled[hole] - truth[hole])) < 1e-3
 
@@ -77,7 +82,7 @@ def test_wall_points_in_the_region_lift_no_fill() -> None:
     hole = (np.abs(x - 1.2) < 0.5) & (np.abs(y) < 0.5)
     domain = np.ones_like(hole)
 
-    filled = repose_fill(measured, ~hole, domain, SLOPE, step)
+    filled = repose_fill(measured, ~hole, domain, _points(~hole, step), SLOPE, step)
 
     assert np.max(filled[hole]) < 1.2 + 0.02
 
@@ -90,6 +95,20 @@ def test_the_fill_does_not_depend_on_the_grid_step() -> None:
         unseen = ((np.abs(np.arctan2(y, x)) < np.radians(35)) & (np.hypot(x, y) > 0.3)) | (
             (y < -1.1) & (np.abs(x) < 1.0)
         )
-        filled = repose_fill(truth, ~unseen, np.ones_like(unseen), SLOPE, step)
+        known = ~unseen
+        filled = repose_fill(truth, known, np.ones_like(known), _points(known, step), SLOPE, step)
         volumes.append(np.sum(filled - truth) * step**2)
     assert np.ptp(volumes) < 0.002  # m³, over the 8 m² hidden: 0.25 mm
+
+
+def test_the_empty_cells_of_a_fine_grid_are_no_hole() -> None:
+    step = 0.005
+    x, _ = _grid(step, half=1.0)
+    truth = 1.6 + 0.0 * x
+    rng = np.random.default_rng(3)
+    known = rng.random(x.shape) < 0.3  # 1.2 points per cell: most cells empty, none unseen
+    measured = np.where(known, truth + rng.normal(0, 0.01, x.shape), np.nan)
+
+    filled = repose_fill(measured, known, np.ones_like(known), known.astype(int), SLOPE, step)
+
+    assert abs(np.mean(filled[~known]) - 1.6) < 0.002

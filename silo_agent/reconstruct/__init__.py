@@ -246,6 +246,7 @@ def reconstruct(
             cells.height,
             observed,
             grid.inside > 0,
+            cells.points,
             settings.repose_slope,
             grid.step,
             level_floor=site.base == "floor",

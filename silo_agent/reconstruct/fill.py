@@ -222,6 +222,7 @@ def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> 
 
 
 REPOSE_BLOCK_M = 0.1  # the repose bounds are computed on blocks about this size
+HOLE_DENSITY = 0.25  # a block with fewer points than this share of the median block's is a hole
 LEVEL_SLOPE = 0.02  # a level surface (a floor, levelled grain) rises no more than 2 %
 _PAIRS_PER_CHUNK = 1 << 20  # (target, source) distances held at once
 
@@ -272,17 +273,25 @@ def _envelope(
 
 
 def repose_bounds(
-    height: np.ndarray, known: np.ndarray, unknown: np.ndarray, slope: float, step: float
+    height: np.ndarray,
+    known: np.ndarray,
+    unknown: np.ndarray,
+    points: np.ndarray,
+    slope: float,
+    step: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, level) for every `unknown` cell, from the known cells around its hole.
+    """(lower, level) for every `unknown` cell, from the known cells around its hole;
+    `points` is the number of points each cell held.
 
     Grain stands no steeper than its angle of repose: a surface at distance d from a known
     height h lies no lower than h - slope * d, so below the crest of a pile an unseen flank
     falls no faster than the repose slope (`lower`). `level` is the least surface rising from
     the known cells at LEVEL_SLOPE: what a level surface (a floor, levelled grain) reaches.
-    The sources are the known blocks of about REPOSE_BLOCK_M around each hole (block means at
-    their cells' centroid: one noisy cell must not set a bound; a block farther inside bounds
-    no more than those between it and the hole do on a surface no steeper than repose). A
+    Holes are the blocks of about REPOSE_BLOCK_M with fewer than HOLE_DENSITY of the median
+    block's points (a shadow holds a few points that depth noise carried in); the sources are
+    the other known blocks around each hole (block means at their cells' centroid: one noisy
+    cell must not set a bound; a block farther inside bounds no more than those between it
+    and the hole do on a surface no steeper than repose). A
     source steeper than repose above its neighbours is not grain (wall points carried in by
     depth noise, a post): for `lower` each source is first lowered to the largest
     repose-steep surface under all of them, for `level` raised to the least above. Computed on
@@ -291,8 +300,13 @@ def repose_bounds(
     k = max(1, round(REPOSE_BLOCK_M / step))
     rows, cols = np.indices(known.shape, dtype=np.float64)
     count = _block_sums(known.astype(np.float64), k)
-    hole = _block_sums(unknown.astype(np.float64), k) > k * k / 2  # a scattered cell is no hole
-    is_source = (count >= k * k / 2) & _grown(hole)
+    # a hole: a block holding few points for the scan (its points, not its cells: on a grid
+    # finer than the points' spacing most cells of a well-seen surface are empty)
+    block_points = _block_sums(np.where(unknown | known, points, 0).astype(np.float64), k)
+    typical = float(np.median(block_points[block_points > 0])) if np.any(block_points) else 0.0
+    hole = _block_sums(unknown.astype(np.float64), k) > 0
+    hole &= block_points < HOLE_DENSITY * typical
+    is_source = (count > 0) & ~hole & _grown(hole)
     cells = np.nonzero(unknown)
     if not np.any(is_source):
         unbounded = np.full(len(cells[0]), np.inf)
@@ -313,8 +327,8 @@ def repose_bounds(
     level = np.full(count.shape, np.nan)
     lower[block_rows, block_cols] = _envelope(centres, source, under, cell_slope, upper=False)
     level[block_rows, block_cols] = _envelope(centres, source, over, LEVEL_SLOPE * step, upper=True)
-    lower_cells = _bilinear(lower, *cells, k)
-    level_cells = _bilinear(level, *cells, k)
+    lower_cells = _bilinear(lower, cells[0], cells[1], k)
+    level_cells = _bilinear(level, cells[0], cells[1], k)
     return np.where(np.isnan(lower_cells), -np.inf, lower_cells), np.where(
         np.isnan(level_cells), np.inf, level_cells
     )
@@ -340,6 +354,7 @@ def repose_fill(
     height: np.ndarray,
     known: np.ndarray,
     domain: np.ndarray,
+    points: np.ndarray,
     slope: float,
     step: float,
     level_floor: bool = True,
@@ -358,7 +373,7 @@ def repose_fill(
     unknown = domain & ~known
     if not np.any(unknown):
         return filled
-    lower, level = repose_bounds(height, known & domain, unknown, slope, step)
+    lower, level = repose_bounds(height, known & domain, unknown, points, slope, step)
     membrane = filled[unknown]
     capped = np.minimum(membrane, level) if level_floor else membrane
     filled[unknown] = np.maximum(capped, lower)
