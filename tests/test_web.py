@@ -356,3 +356,57 @@ def test_the_scan_path_loads_nothing_of_the_page() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+@pytest.mark.slow
+def test_a_web_thread_that_ends_is_restarted(tmp_path: Path, broker, collector_factory) -> None:
+    """The page's server is supervised like the agent's own threads: when its thread ends
+    (here its server is told to exit, which also closes the listening socket), the agent
+    serves the page again on the same port."""
+    import threading
+
+    from silo_agent.config import load_config
+    from silo_agent.service.daemon import Agent
+    from silo_agent.service.sdnotify import Notifier
+    from silo_agent.web.server import WebServer
+
+    port = free_port()
+    path = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        schedule={"scan_at_start": True},
+        web={"enabled": True, "port": port},
+    )
+    config = load_config(path, service=True)
+    web = WebServer.bind(config.web)
+    agent = Agent(path, config, notifier=Notifier(None), companions=[web])
+    main = threading.Thread(target=agent.run, name="agent-main")
+    col = collector_factory(broker, [f"{BASE}/#"])
+    main.start()
+    try:
+        col.wait_topic(f"{BASE}/volume", timeout=120)
+        base = f"http://127.0.0.1:{port}"
+        assert fetch(base + "/api/state")[0] == 200
+        (before,) = [t for t in threading.enumerate() if t.name == "web"]
+        assert web._server is not None
+        web._server.should_exit = True
+        before.join(30)
+        assert not before.is_alive()
+        end = time.monotonic() + 30
+        while True:
+            serving = [t for t in threading.enumerate() if t.name == "web" and t is not before]
+            if serving:
+                try:
+                    if fetch(base + "/api/state")[0] == 200:
+                        break
+                except OSError:
+                    pass
+            assert time.monotonic() < end, "the page was not served again"
+            time.sleep(0.1)
+        state = json.loads(fetch(base + "/api/state")[1])
+        assert state["latest"]["published"]["scan_id"].startswith("silo-d-")
+        assert main.is_alive()
+    finally:
+        agent.stop()
+        main.join(30)

@@ -44,9 +44,16 @@ RESTART_WINDOW_S = 600.0
 
 class Companion(Protocol):
     """Something served beside the agent for its whole run, e.g. the operator's page
-    (silo_agent/web): started once MQTT runs, before the first scan; stopped at shutdown."""
+    (silo_agent/web): started once MQTT runs, before the first scan; supervised like the
+    agent's own threads (`alive`, `restart`); stopped at shutdown."""
+
+    name: str
 
     def start(self, agent: Agent) -> None: ...
+
+    def alive(self) -> bool: ...
+
+    def restart(self) -> None: ...
 
     def stop(self) -> None: ...
 
@@ -417,6 +424,7 @@ class Agent:
         threads = (
             ("mqtt", self.telemetry.alive, self.telemetry.restart),
             ("metrics", self.metrics.alive, self.metrics.restart),
+            *((c.name, c.alive, c.restart) for c in self.companions),
         )
         for name, alive, restart in threads:
             if alive():

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import hmac
 import json
 import os
@@ -405,7 +406,10 @@ def app_for(sources: Sources, token: str | None) -> tuple[ASGIApp, Pages]:
 
 
 class WebServer:
-    """`bind` at start (errors: ConfigError), `start` once the agent is up, `stop` at the end."""
+    """`bind` at start (errors: ConfigError), `start` once the agent is up, `stop` at the end;
+    the agent's supervision restarts its thread if it dies (`alive`, `restart`)."""
+
+    name = "web"
 
     def __init__(self, cfg: WebConfig, token: str | None, sock: socket.socket) -> None:
         self.cfg = cfg
@@ -414,6 +418,7 @@ class WebServer:
         self._server: uvicorn.Server | None = None
         self._thread: threading.Thread | None = None
         self._pages: Pages | None = None
+        self._app: ASGIApp | None = None
 
     @classmethod
     def bind(cls, cfg: WebConfig) -> WebServer:
@@ -425,17 +430,12 @@ class WebServer:
                 raise ConfigError(f"web.token_file: {exc}") from None
             if not token:
                 raise ConfigError(f"web.token_file: {cfg.token_file} is empty")
-        family = socket.AF_INET6 if ":" in cfg.host else socket.AF_INET
-        sock = socket.socket(family, socket.SOCK_STREAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            sock.bind((cfg.host, cfg.port))
-            sock.listen(64)
+            sock = _listen(cfg)
         except OSError as exc:
-            sock.close()
             raise ConfigError(
                 f"web: cannot listen on {cfg.host}:{cfg.port}: {exc.strerror or exc}"
-                + ("; choose another web.port" if exc.errno == 98 else "")
+                + ("; choose another web.port" if exc.errno == errno.EADDRINUSE else "")
             ) from None
         return cls(cfg, token, sock)
 
@@ -452,9 +452,19 @@ class WebServer:
         )
 
     def serve(self, sources: Sources) -> None:
-        app, self._pages = app_for(sources, self.token)
+        self._app, self._pages = app_for(sources, self.token)
+        self._run()
+        self._pages.pool.submit(_warm_up)  # matplotlib's import (~1 s) off the first request
+        log.info(
+            "web page serving",
+            url=f"http://{self.cfg.host}:{self.port}/",
+            token=self.token is not None,
+        )
+
+    def _run(self) -> None:
+        assert self._app is not None
         config = uvicorn.Config(
-            app,
+            self._app,
             log_config=None,
             access_log=False,
             lifespan="off",
@@ -465,12 +475,27 @@ class WebServer:
             target=self._server.run, kwargs={"sockets": [self.sock]}, name="web", daemon=True
         )
         self._thread.start()
-        self._pages.pool.submit(_warm_up)  # matplotlib's import (~1 s) off the first request
-        log.info(
-            "web page serving",
-            url=f"http://{self.cfg.host}:{self.port}/",
-            token=self.token is not None,
-        )
+
+    def alive(self) -> bool:
+        """The server's thread runs (or it was never started)."""
+        return self._thread is None or self._thread.is_alive()
+
+    def restart(self) -> None:
+        """A new server after its thread died, on the port again if the dying one closed it.
+        If another process took the port meanwhile the page stays down (logged): the scans
+        go on, the page is not worth stopping the agent for."""
+        if self.sock.fileno() == -1:
+            try:
+                self.sock = _listen(self.cfg)
+            except OSError as exc:
+                log.error(
+                    "web page down: cannot listen again",
+                    address=f"{self.cfg.host}:{self.cfg.port}",
+                    error=exc.strerror or str(exc),
+                )
+                self._thread = None
+                return
+        self._run()
 
     def stop(self) -> None:
         if self._server is not None:
@@ -480,3 +505,16 @@ class WebServer:
         if self._pages is not None:
             self._pages.pool.shutdown(wait=False, cancel_futures=True)
         self.sock.close()
+
+
+def _listen(cfg: WebConfig) -> socket.socket:
+    family = socket.AF_INET6 if ":" in cfg.host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((cfg.host, cfg.port))
+        sock.listen(64)
+    except OSError:
+        sock.close()
+        raise
+    return sock

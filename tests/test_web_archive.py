@@ -1,0 +1,170 @@
+"""The page's reading of the audit cache and its server, in process (no daemon, no broker): the
+scan list and history ranges, what counts as a scan of this silo, the page without a token on
+loopback, the picture's layout promise on a real reconstruction, and clean stops."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import urllib.error
+import urllib.request
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from silo_agent.config import AuditConfig, WebConfig, parse_config
+from silo_agent.scan import Scan
+from silo_agent.service.scan_path import analyse_with, settings_of, summarise
+from silo_agent.storage.audit import AuditCache
+from silo_agent.web.archive import Archive, ScanNotFound
+from silo_agent.web.pictures import colour_cells, layout_of
+from silo_agent.web.server import LiveFeed, Sources, WebServer
+from tests.support.mqtt_broker import free_port
+
+SILO = "t"
+NOW = datetime.now(UTC).replace(microsecond=0)
+AGES = (timedelta(days=3), timedelta(hours=2), timedelta(0))
+
+
+@pytest.fixture(scope="module")
+def analysed(cone_scan_2: Scan):
+    return analyse_with(cone_scan_2, settings_of(cone_scan_2), [])
+
+
+def cache_with_scans(directory: Path, scan: Scan, analysed) -> tuple[AuditCache, list[str]]:
+    """Three kept scans of silo `t` (3 days, 2 hours and 0 s old) and one without a result."""
+    cache = AuditCache(AuditConfig(directory=directory), SILO)
+    ids = []
+    for k, age in enumerate((*AGES, timedelta(minutes=1))):
+        when = NOW - age
+        scan_id = f"{SILO}-{when:%Y%m%dT%H%M%SZ}"
+        copy = replace(
+            scan, scan_id=scan_id, captured_at=f"{when:%Y-%m-%dT%H:%M:%SZ}", silo_id=SILO
+        )
+        path = cache.write_scan(copy, {})
+        if k < len(AGES):  # the last one failed before a result
+            summary = {**summarise(analysed, copy, {}), "scan_id": scan_id}
+            cache.add_result(path, summary, analysed.reconstruction.heightmap, {})
+        ids.append(scan_id)
+    (directory / "not-a-scan").mkdir()
+    (directory / "other-20260101T000000Z").mkdir()
+    return cache, ids
+
+
+def test_scan_list_history_ranges_and_lookups(tmp_path: Path, cone_scan_2: Scan, analysed):
+    cache, ids = cache_with_scans(tmp_path / "scans", cone_scan_2, analysed)
+    archive = Archive(cache)
+    records = archive.records()
+    assert [r.scan_id for r in records] == sorted(ids)  # oldest first, strays left out
+    kept = [r for r in records if r.has_result]
+    assert len(kept) == 3 and all(r.volume_m3 == analysed.reconstruction.volume_m3 for r in kept)
+    assert archive.latest() is not None and archive.latest().scan_id == ids[2]
+    assert len(archive.history("day")) == 2
+    assert len(archive.history("week")) == len(archive.history("all")) == 3
+    for bad in ("../scans", "not-a-scan", "other-20260101T000000Z", ids[0] + "/scan.json", ""):
+        with pytest.raises(ScanNotFound):
+            archive.directory(bad)
+    with pytest.raises(ScanNotFound):
+        archive.view(ids[3])  # no result: no picture
+    view = archive.view(ids[2])
+    assert view.published["volume_m3"] == analysed.reconstruction.volume_m3
+    assert {c.serial for c in view.cameras} == {c.serial for c in cone_scan_2.cameras}
+    assert all(0 < c.coverage <= 1 for c in view.cameras)
+
+    # a scan that arrives is listed at the next look, its result once it is kept
+    when = NOW + timedelta(seconds=1)
+    late = replace(
+        cone_scan_2,
+        scan_id=f"{SILO}-{when:%Y%m%dT%H%M%SZ}",
+        captured_at=f"{when:%Y-%m-%dT%H:%M:%SZ}",
+        silo_id=SILO,
+    )
+    path = cache.write_scan(late, {})
+    assert archive.records()[-1].has_result is False
+    summary = {**summarise(analysed, late, {}), "scan_id": late.scan_id}
+    cache.add_result(path, summary, analysed.reconstruction.heightmap, {})
+    assert archive.records()[-1].has_result is True
+    assert archive.latest().scan_id == late.scan_id
+
+
+def test_colours_follow_the_layout(analysed):
+    """The picture's promise (docs/web.md): its lookup table gives what calling matplotlib's
+    colormap on the heights gives, filled cells blended, outside grey."""
+    from matplotlib import colormaps
+
+    hm = analysed.reconstruction.heightmap
+    layout = layout_of(hm, 0.0)
+    cells = colour_cells(hm, layout).astype(float)
+    known = np.isfinite(hm.heights)
+    scaled = np.clip(
+        (np.where(known, hm.heights, 0) - layout.vmin) / (layout.vmax - layout.vmin), 0, 1
+    )
+    expected = colormaps["viridis"](scaled, bytes=True)[..., :3].astype(float)
+    filled = known & ~hm.observed
+    expected[filled] += (255 - expected[filled]) * layout.filled_blend
+    expected[~known] = layout.outside_rgb
+    assert filled.any() and hm.observed.any()
+    assert np.array_equal(cells, np.rint(expected))
+
+
+def get(url: str, token: str | None = None) -> tuple[int, bytes, str]:
+    request = urllib.request.Request(url)
+    if token:
+        request.add_header("Authorization", f"Bearer {token}")
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, response.read(), response.headers.get("content-type", "")
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read(), exc.headers.get("content-type", "")
+
+
+def test_the_server_on_loopback_without_a_token(tmp_path: Path, cone_scan_2: Scan, analysed):
+    from PIL import Image
+
+    cache, ids = cache_with_scans(tmp_path / "scans", cone_scan_2, analysed)
+    config = parse_config(
+        {
+            "silo": {
+                "id": SILO,
+                "region": cone_scan_2.site.region.tolist(),
+                "floor_z": 0.0,
+                "bulk_density_t_m3": 0.77,
+            },
+            "cameras": [
+                {"serial": c.serial, "source": "sim", "view": "A1"} for c in cone_scan_2.cameras
+            ],
+        },
+        "test",
+    )
+    status = {"cameras": [], "alarms": {}, "events": []}
+    server = WebServer.bind(WebConfig(enabled=True, port=free_port()))
+    server.serve(Sources(Archive(cache), lambda: config, lambda: status, LiveFeed()))
+    base = f"http://127.0.0.1:{server.port}"
+    try:
+        code, body, kind = get(base + "/api/state")
+        assert code == 200 and kind.startswith("application/json")
+        state = json.loads(body)
+        assert state["latest"]["published"]["scan_id"] == ids[2]
+        assert state["latest"]["published"]["volume_m3"] == analysed.reconstruction.volume_m3
+        assert state["scans"] == 4 and state["live"] == {"count": 0}
+        code, body, kind = get(f"{base}/api/map/{ids[1]}.png")
+        assert code == 200 and kind == "image/png"
+        layout = json.loads(get(f"{base}/api/map/{ids[1]}.json")[1])
+        with Image.open(io.BytesIO(body)) as picture:
+            assert picture.size == (layout["width_px"], layout["height_px"])
+        for span, count in (("day", 2), ("week", 3), ("all", 3)):
+            svg = get(f"{base}/api/history.svg?range={span}")[1].decode()
+            group = re.search(r'<g id="history-valid">(.*?)</g>\s*</g>', svg, re.S)
+            assert group is not None and group.group(1).count("<use ") == count, span
+        assert get(base + "/api/live.png")[0] == 404  # no live session yet
+        code, body, _ = get(f"{base}/scans/{ids[3]}/report.html")
+        assert code == 404 and b"Traceback" not in body
+        assert get(f"{base}/scans/{ids[3]}/export.tar.gz")[0] == 200  # a raw scan exports
+    finally:
+        server.stop()
+    with pytest.raises(OSError):
+        get(base + "/api/state")
