@@ -18,7 +18,7 @@ import pytest
 
 from silo_agent.config import AuditConfig, WebConfig, parse_config
 from silo_agent.scan import Scan
-from silo_agent.service.scan_path import analyse_with, settings_of, summarise
+from silo_agent.service.scan_path import analyse_with, settings_of, summary_of
 from silo_agent.storage.audit import AuditCache
 from silo_agent.web.archive import Archive, ScanNotFound
 from silo_agent.web.pictures import colour_cells, layout_of
@@ -47,7 +47,7 @@ def cache_with_scans(directory: Path, scan: Scan, analysed) -> tuple[AuditCache,
         )
         path = cache.write_scan(copy, {})
         if k < len(AGES):  # the last one failed before a result
-            summary = {**summarise(analysed, copy, {}), "scan_id": scan_id}
+            summary = {**summary_of(analysed, copy, {}).to_json(), "scan_id": scan_id}
             cache.add_result(path, summary, analysed.reconstruction.heightmap, {})
         ids.append(scan_id)
     (directory / "not-a-scan").mkdir()
@@ -85,7 +85,7 @@ def test_scan_list_history_ranges_and_lookups(tmp_path: Path, cone_scan_2: Scan,
     )
     path = cache.write_scan(late, {})
     assert archive.records()[-1].has_result is False
-    summary = {**summarise(analysed, late, {}), "scan_id": late.scan_id}
+    summary = {**summary_of(analysed, late, {}).to_json(), "scan_id": late.scan_id}
     cache.add_result(path, summary, analysed.reconstruction.heightmap, {})
     assert archive.records()[-1].has_result is True
     assert archive.latest().scan_id == late.scan_id
