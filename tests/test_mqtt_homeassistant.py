@@ -297,3 +297,32 @@ def test_no_discovery_without_home_assistant_even_for_a_new_alarm_type(
     col.publish(f"{BASE}/cmd/scan", b"{}")  # a round trip through the agent, then look
     col.wait_topic(f"{BASE}/cmd/scan/reply")
     assert not [m for m in col.messages if m.topic.startswith("homeassistant/")]
+
+
+def test_every_reading_carries_the_documented_attributes() -> None:
+    """docs/mqtt.md: every reading from `P/volume` (Degraded and Last scan too) has the scan's
+    `scan_id`, `captured_at`, `valid` and `degraded` as attributes, rendered as HA does."""
+    from silo_agent.telemetry.homeassistant import discovery_config
+    from silo_agent.telemetry.payloads import Envelope, volume_payload
+
+    _topic, payload = discovery_config(
+        discovery_prefix="homeassistant",
+        base_topic=BASE,
+        silo_id=SILO,
+        version="9.9.9",
+        alarm_types=ALARM_TYPES,
+    )
+    cmps = json.loads(payload)["cmps"]
+    degraded = summary(degraded=True)
+    volume = volume_payload(Envelope.new(5), degraded).to_bytes()
+    readings = {k for k, c in cmps.items() if c["state_topic"] == f"{BASE}/volume"}
+    assert {"volume", "mass", "coverage", "valid", "degraded", "last_scan"} <= readings
+    for key in readings:
+        assert cmps[key]["json_attributes_topic"] == f"{BASE}/volume", key
+        attributes = json.loads(render(cmps[key]["json_attributes_template"], volume))
+        assert attributes == {
+            "scan_id": degraded["scan_id"],
+            "captured_at": degraded["captured_at"],
+            "valid": True,
+            "degraded": True,
+        }, key

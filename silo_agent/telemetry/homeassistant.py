@@ -45,7 +45,8 @@ def _reading(
     state: str,
     expire_after_s: int | None,
 ) -> dict:
-    """A measurement sensor on P/volume, with the scan's identity as attributes."""
+    """A measurement sensor on P/volume (`discovery_config` adds the scan's identity as
+    attributes, as to every reading)."""
     component: dict = {
         "p": "sensor",
         "name": name,
@@ -53,8 +54,6 @@ def _reading(
         "state_topic": state,
         "value_template": template,
         "state_class": "measurement",
-        "json_attributes_topic": state,
-        "json_attributes_template": READING_ATTRIBUTES,
     }
     if unit:
         component["unit_of_measurement"] = unit
@@ -115,8 +114,6 @@ def discovery_config(
             "unique_id": f"{uid}_valid",
             "state_topic": volume,
             "value_template": "{{ 'ON' if value_json.valid else 'OFF' }}",
-            "json_attributes_topic": volume,
-            "json_attributes_template": READING_ATTRIBUTES,
             "entity_category": "diagnostic",
         },
         "degraded": {
@@ -151,6 +148,10 @@ def discovery_config(
             volume,
             expire_after_s,
         )
+    for component in components.values():  # every reading says which scan it is from
+        if component["state_topic"] == volume:
+            component["json_attributes_topic"] = volume
+            component["json_attributes_template"] = READING_ATTRIBUTES
     for alarm_type in alarm_types:
         components[f"alarm_{alarm_type}"] = {
             "p": "binary_sensor",
