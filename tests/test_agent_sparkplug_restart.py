@@ -11,11 +11,12 @@ from pathlib import Path
 import pysparkplug as ps
 import pytest
 
+from silo_agent.service.daemon import RESTORE_FAILED
 from tests.support.agent import BASE, SILO, Daemon, write_config
 from tests.support.mqtt import validate_json
 
 NODE = f"spBv1.0/silos/{{}}/{SILO}"
-RESTORE_FAILED = "no scan result restored: the Sparkplug birth starts with nulls"
+
 RESULT_METRICS = {  # metric -> where the retained P/volume has the same value
     "Inventory/Volume m3": ("volume_m3",),
     "Inventory/Mass t": ("mass_t",),

@@ -300,4 +300,4 @@ def test_a_switched_off_detector_clears_its_alarm_in_the_next_scan():
 
 
 def test_alarm_types_every_consumer_declares_are_the_detectors_ones():
-    assert set(ALARM_TYPES) == set(DETECTORS) | {"calibration"}
+    assert set(ALARM_TYPES) == set(DETECTORS) | {"calibration", "outbox"}

@@ -7,8 +7,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
-# Alarm types every consumer can count on (Sparkplug NBIRTH and HA declare them up front);
-# others may appear and are added as they are seen.
+# Alarm types every consumer can count on: Prometheus' alarm_active, the Sparkplug NBIRTH's
+# Alarms/*, Home Assistant discovery and the retained P/alarm/<type> states declare them up
+# front (the scan's detectors, calibration, and the outbox's own alarm); others may appear and
+# are added as they are seen.
 ALARM_TYPES = (
     "collapse",
     "level_high",
@@ -18,6 +20,7 @@ ALARM_TYPES = (
     "coverage",
     "cache",
     "calibration",
+    "outbox",
 )
 
 AlarmStateName = Literal["raised", "cleared"]

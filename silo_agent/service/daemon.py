@@ -33,6 +33,7 @@ from silo_agent.service.sdnotify import Notifier
 from silo_agent.service.state_lock import StateLock
 from silo_agent.storage.audit import AuditCache
 from silo_agent.telemetry.client import CommandRejected, ScanCommand, Telemetry
+from silo_agent.telemetry.payloads import check_summary
 from silo_agent.telemetry.prometheus import Metrics
 
 log = structlog.get_logger(__name__)
@@ -56,6 +57,9 @@ class Companion(Protocol):
     def restart(self) -> None: ...
 
     def stop(self) -> None: ...
+
+
+RESTORE_FAILED = "no scan result restored: Sparkplug and the metrics start with nulls"
 
 
 @dataclass
@@ -104,9 +108,8 @@ class Agent:
         self.cache = AuditCache(config.audit, config.silo.id)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
         self.telemetry.restore_alarms(self.pipeline.state.active)
-        if config.mqtt.sparkplug.enabled:
-            self._restore_result()
-        self.metrics.set_alarms(self.pipeline.state.active)
+        self._restore_result()
+        self.metrics.set_alarms(self.telemetry.raised_alarms())
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -122,17 +125,25 @@ class Agent:
         self.companions = list(companions)
 
     def _restore_result(self) -> None:
-        """The last published result into the Sparkplug node. A host applies the NDATA the
-        outbox replays after a restart as history, not as the current value: without this
-        it would show nulls from the first NBIRTH until the next scan."""
+        """The last results in the audit cache into what reports them between scans: the
+        Sparkplug node (a host applies the NDATA the outbox replays after a restart as
+        history, not as the current value) and the Prometheus gauges. Without this both
+        would show nulls or zeros (an empty silo, a stale scan) until the next scan."""
         try:
-            self.telemetry.restore_result(ScanSummary.from_json(self.cache.latest_result()))
+            newest = ScanSummary.from_json(self.cache.latest_result())
+            self.telemetry.restore_result(newest)  # validated as for publishing
         except ValueError as exc:
-            log.warning(
-                "no scan result restored: the Sparkplug birth starts with nulls",
-                reason=str(exc),
-                cache=str(self.cache.directory),
-            )
+            log.warning(RESTORE_FAILED, reason=str(exc), cache=str(self.cache.directory))
+            return
+        newest_valid: ScanSummary | None = newest
+        if not newest.valid:
+            try:
+                newest_valid = ScanSummary.from_json(self.cache.latest_result(valid=True))
+                check_summary(newest_valid)
+            except ValueError as exc:
+                log.info("no valid scan result restored", reason=str(exc))
+                newest_valid = None
+        self.metrics.restore_results(newest, newest_valid)
 
     @property
     def last_outcome(self) -> Outcome | None:

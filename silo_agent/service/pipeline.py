@@ -39,7 +39,6 @@ from silo_agent.service.scan_path import (
 from silo_agent.storage.audit import AuditCache, dump_json, is_disk_full
 from silo_agent.telemetry.client import Telemetry
 from silo_agent.telemetry.prometheus import Metrics
-from silo_agent.telemetry.sparkplug import iso_to_ms
 
 if TYPE_CHECKING:
     from silo_agent.analysis.scan_analysis import ScanAnalysis
@@ -313,18 +312,9 @@ class Pipeline:
             log.warning("alarm", **details, text=event.message)
 
     def _count(self, outcome: str, summary: ScanSummary) -> None:
-        m = self.metrics
-        m.scans.labels(outcome).inc()
-        captured = iso_to_ms(summary.captured_at) / 1000.0
-        m.last_scan.set(captured)
-        if outcome != "failed":
-            m.coverage.set(summary.coverage)
-        if summary.valid and summary.volume_m3 is not None:
-            m.volume.set(summary.volume_m3)
-            m.last_valid_scan.set(captured)
-            if summary.mass_t is not None:
-                m.mass.set(summary.mass_t * 1000.0)
-        m.set_alarms(self.state.active)
+        self.metrics.scans.labels(outcome).inc()
+        self.metrics.record_result(summary, failed=outcome == "failed")
+        self.metrics.set_alarms(self.telemetry.raised_alarms())
 
     def clear_switched_off_alarms(self) -> None:
         """At start and after a reload: clear, with the usual `cleared` event, every raised
@@ -340,4 +330,4 @@ class Pipeline:
                 type=event.type,
                 reason=event.message,
             )
-        self.metrics.set_alarms(self.state.active)
+        self.metrics.set_alarms(self.telemetry.raised_alarms())

@@ -163,9 +163,10 @@ class AuditCache:
             out.append(Entry(path.name, path, when, _tree_bytes(path)))
         return sorted(out, key=lambda e: (e.captured_at, e.scan_id))
 
-    def latest_result(self) -> dict[str, Any]:
-        """The published result (`result.json`) of the newest cached scan that has one;
-        ValueError saying why when there is none or it cannot be read."""
+    def latest_result(self, *, valid: bool = False) -> dict[str, Any]:
+        """The published result (`result.json`) of the newest cached scan that has one (with
+        `valid`: the newest valid one, a volume); ValueError saying why when there is none or
+        the newest cannot be read."""
         for entry in reversed(self.entries()):
             path = entry.path / RESULT
             try:
@@ -176,8 +177,13 @@ class AuditCache:
                 raise ValueError(f"{path}: {exc}") from None
             if not isinstance(summary, dict):
                 raise ValueError(f"{path}: not a JSON object")
+            if valid and not (
+                summary.get("valid") is True and summary.get("volume_m3") is not None
+            ):
+                continue
             return summary
-        raise ValueError(f"no scan in {self.directory} has a {RESULT}")
+        kind = "valid " if valid else ""
+        raise ValueError(f"no scan in {self.directory} has a {kind}{RESULT}")
 
     def names(self) -> set[str]:
         """Names taken in the cache directory (cheap: no manifest read, no sizes)."""

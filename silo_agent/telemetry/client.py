@@ -144,17 +144,37 @@ class Telemetry:
 
     def _report_outbox_damage(self) -> None:
         """The `outbox` alarm: raised when a corrupt outbox was moved aside at open (what it
-        held is lost), cleared at a later start once no moved-aside copy is left."""
+        held is lost), cleared at a later start once no moved-aside copy is left; a start in
+        between restores it as raised, as the scan alarms are (`restore_alarms`)."""
         change = self.outbox.corrupt_alarm_change()
-        if change is None:
-            return
         aside = self.outbox.moved_aside
-        message = (
-            f"outbox database {self.outbox.path} was corrupt: moved aside to {aside.name},"
-            " the messages queued in it were not sent; remove it once inspected"
-            if aside is not None
-            else "no corrupt outbox copy left"
-        )
+        if change == "raised" and aside is not None:
+            message = (
+                f"outbox database {self.outbox.path} was corrupt: moved aside to {aside.name},"
+                " the messages queued in it were not sent; remove it once inspected"
+            )
+        elif change == "cleared":
+            message = "no corrupt outbox copy left"
+        elif self.outbox.corrupt_alarm_raised():
+            left = ", ".join(sorted(p.name for p in self.outbox.corrupt_copies()))
+            message = (
+                f"corrupt outbox copies left beside {self.outbox.path}: {left};"
+                " remove them once inspected"
+            )
+            self.restore_alarms(
+                {
+                    "outbox": AlarmEvent(
+                        type="outbox",
+                        state="raised",
+                        scan_id=None,
+                        severity="warning",
+                        message=message,
+                    )
+                }
+            )
+            return
+        else:
+            return
         self.publish_alarm(
             AlarmEvent(
                 type="outbox", state=change, scan_id=None, severity="warning", message=message
@@ -244,6 +264,12 @@ class Telemetry:
         with self.state.lock:
             self.spb_node.restore_result(volume)
             self.state.rebirth = True
+
+    def raised_alarms(self) -> set[str]:
+        """The alarm types raised now, whoever raised them (the scan's detectors, the
+        outbox): what `silo_agent_alarm_active` shows."""
+        with self.state.lock:
+            return {t for t, e in self.state.alarm_states.items() if e.state == "raised"}
 
     def _record_alarm(self, alarm_type: str, event: AlarmEvent) -> None:
         """The state of `alarm_type` is now `event`; a new type is announced to HA (with the

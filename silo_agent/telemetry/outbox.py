@@ -286,9 +286,7 @@ class Outbox:
         change: AlarmStateName
         if self.moved_aside is not None:
             change, flag = "raised", 1
-        elif self._state["corrupt_alarm"] and not list(
-            self.path.parent.glob(self.path.name + ".corrupt-*")
-        ):
+        elif self._state["corrupt_alarm"] and not self.corrupt_copies():
             change, flag = "cleared", 0
         else:
             return None
@@ -296,6 +294,14 @@ class Outbox:
             self._state["corrupt_alarm"] = flag
             self._write_state()
         return change
+
+    def corrupt_alarm_raised(self) -> bool:
+        """Whether the `outbox` alarm stands raised (persisted in the state file)."""
+        return bool(self._state["corrupt_alarm"])
+
+    def corrupt_copies(self) -> list[Path]:
+        """The corrupt outboxes moved aside and still beside this one."""
+        return list(self.path.parent.glob(self.path.name + ".corrupt-*"))
 
     def _write(self, body: Callable[[], T]) -> T:
         """Run `body` in one IMMEDIATE transaction under the lock: committed (fsynced) or

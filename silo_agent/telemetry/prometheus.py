@@ -14,7 +14,9 @@ from wsgiref.simple_server import WSGIServer
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 
 from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import MetricsConfig
+from silo_agent.telemetry.sparkplug import iso_to_ms
 
 STAGE_BUCKETS = (0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600)
 SCAN_OUTCOMES = ("ok", "invalid", "failed")
@@ -85,6 +87,27 @@ class Metrics:
         self._server: WSGIServer | None = None
         self._thread: threading.Thread | None = None
         self._cfg: MetricsConfig | None = None
+
+    def record_result(self, summary: ScanSummary, failed: bool = False) -> None:
+        """The last-scan gauges after a scan's result (`failed`: no analysis, no coverage):
+        the one path for a scan just finished and for the cached results restored at start."""
+        captured = iso_to_ms(summary.captured_at) / 1000.0
+        self.last_scan.set(captured)
+        if not failed:
+            self.coverage.set(summary.coverage)
+        if summary.valid and summary.volume_m3 is not None:
+            self.volume.set(summary.volume_m3)
+            self.last_valid_scan.set(captured)
+            if summary.mass_t is not None:
+                self.mass.set(summary.mass_t * 1000.0)
+
+    def restore_results(self, newest: ScanSummary, newest_valid: ScanSummary | None) -> None:
+        """At start, from the audit cache: the gauges as the last run left them (the newest
+        valid result's volume, mass and time; the newest result's time and coverage), not 0,
+        which reads as an empty silo and fires the staleness alert at every restart."""
+        for summary in (newest_valid, newest):
+            if summary is not None:
+                self.record_result(summary)
 
     def set_alarms(self, active: Iterable[str]) -> None:
         """1 for the raised alarm types, 0 for every other one."""

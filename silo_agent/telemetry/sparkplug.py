@@ -112,13 +112,11 @@ class SparkplugNode:
     def restore_alarms(self, active: Iterable[str]) -> None:
         """Take the alarm states persisted by the last run, so that the first NBIRTH after a
         restart says raised where the JSON topics, HA and the metrics do."""
-        raised = set(active)
         restored = now_ms()  # the persisted state carries no time: that of learning it
-        for alarm_type in raised | set(ALARM_TYPES):
+        for alarm_type in active:  # the others keep theirs (cleared, or raised at this start)
             self.datatypes[alarm_metric(alarm_type)] = pb.Boolean
-            self.values[alarm_metric(alarm_type)] = alarm_type in raised
-            if alarm_type in raised:
-                self.stamps[alarm_metric(alarm_type)] = restored
+            self.values[alarm_metric(alarm_type)] = True
+            self.stamps[alarm_metric(alarm_type)] = restored
 
     def restore_result(self, volume: Mapping[str, Any]) -> None:
         """Take the last result published before this start, so that the first NBIRTH after
