@@ -1,5 +1,9 @@
 """A live session: capture the newest frames, update the live map, publish, at most `rate_hz`.
 
+Pacing: captures are a period apart, and timed so that a map goes out as soon as it is built
+(the capture leads the send by the median of the recent build times); sends are never closer
+than a period. A map's age at sending is its build time, not the slowest build of the session.
+
 The session runs in its own thread. With a YOLO model configured (`[detection.onnx]`), the maps
 it is due for bring colour frames, and its robot sightings are held with the depth ones
 (live/model.py). The agent suspends it while a full scan has the cameras
@@ -9,8 +13,10 @@ and resumes it afterwards; the map's state, the sequence numbers and the deadlin
 
 from __future__ import annotations
 
+import statistics
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -32,6 +38,7 @@ from silo_agent.telemetry.heightmap_codec import encode_live_heightmap
 log = structlog.get_logger(__name__)
 
 SIM_MESH_STEP_M = 0.03  # the moving world is rebuilt every frame: coarse enough for 2 Hz
+BUILD_WINDOW = 5  # recent maps whose median build time paces the captures
 
 
 class FrameSource(Protocol):
@@ -116,8 +123,11 @@ class LiveSession:
         publish: Callable[[bytes, float], None],
         on_end: Callable[[str], None],
         start_map: HeightMap | None = None,
+        open_frames: Callable[[Config], FrameSource] = open_source,
     ) -> None:
+        """`open_frames` opens the cameras (at each start and resume)."""
         self.config = config
+        self._open_frames = open_frames
         self.session_id = session_id
         self.rate_hz = rate_hz
         self.deadline = time.monotonic() + duration_s
@@ -134,6 +144,7 @@ class LiveSession:
         self._thread: threading.Thread | None = None
         self._ended = False
         self._lock = threading.Lock()
+        self._sent = -np.inf  # when the last map went out (across suspend and resume)
 
     @property
     def active(self) -> bool:
@@ -190,7 +201,7 @@ class LiveSession:
     def _capture(self) -> None:
         period = 1.0 / self.rate_hz
         try:
-            self._source = open_source(self.config)  # here, not in the agent's loop: seconds
+            self._source = self._open_frames(self.config)  # here, not in the agent's loop: seconds
         except CaptureError as exc:
             self._end(f"cannot capture: {exc}")
             return
@@ -201,31 +212,16 @@ class LiveSession:
                 self._end(f"cannot load the robot model: {exc}")
                 return
         source, model = self._source, self._model
-        sent = -np.inf
-        while not self._stop.is_set():
+        builds: deque[float] = deque(maxlen=BUILD_WINDOW)
+        next_capture = time.monotonic()
+        while not self._stop.wait(max(0.0, next_capture - time.monotonic())):
             began = time.monotonic()
             taken = datetime.now(UTC)
             if began >= self.deadline:
                 self._end("duration reached")
                 return
             try:
-                color = model is not None and model.due(began)
-                frames = source.frames(began - self.started, color)
-                seen = model.robots(frames, self.map, began) if model is not None else []
-                update = self.map.update(frames, began, seen)
-                meta = {
-                    "time": taken.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),  # of the frames
-                    "rate_hz": self.rate_hz,
-                    "robots": [r.to_json() for r in update.robots],
-                    "changed_cells": int(update.changed.sum()),
-                }
-                payload = encode_live_heightmap(
-                    update.heightmap,
-                    self.session_id,
-                    update.sequence,
-                    meta,
-                    {"changed": update.changed, "held": update.held},
-                )
+                payload = self._build(source, model, began, taken)
             except CaptureError as exc:
                 log.error("live capture failed", session=self.session_id, error=str(exc))
                 self._end(f"capture failed: {exc}")
@@ -234,9 +230,11 @@ class LiveSession:
                 log.exception("live map failed", session=self.session_id)
                 self._end(f"internal error: {exc}")
                 return
-            self.stats.last_map_s = time.monotonic() - began
-            # at most rate_hz, however long each map took
-            if self._stop.wait(max(0.0, sent + period - time.monotonic())):
+            built = time.monotonic()
+            self.stats.last_map_s = built - began
+            builds.append(built - began)
+            # out as soon as it is built, but never closer than a period to the last map
+            if self._stop.wait(max(0.0, self._sent + period - built)):
                 return
             try:
                 self._publish(payload, period)
@@ -244,6 +242,31 @@ class LiveSession:
                 log.error("live map too large for the broker", session=self.session_id)
                 self._end(str(exc))
                 return
-            sent = time.monotonic()
+            self._sent = time.monotonic()
             self.stats.maps += 1
-            self._stop.wait(max(0.0, began + period - time.monotonic()))
+            # the next capture a period after this one, and no earlier than lets its map
+            # (built in the usual time) go out as soon as it is built: a slow map shifts the
+            # captures once, it does not leave every later map waiting, as old as it was
+            next_capture = max(began + period, self._sent + period - statistics.median(builds))
+
+    def _build(
+        self, source: FrameSource, model: LiveRobotModel | None, began: float, taken: datetime
+    ) -> bytes:
+        """Capture the newest frames at `began` and make the encoded map."""
+        color = model is not None and model.due(began)
+        frames = source.frames(began - self.started, color)
+        seen = model.robots(frames, self.map, began) if model is not None else []
+        update = self.map.update(frames, began, seen)
+        meta = {
+            "time": taken.strftime("%Y-%m-%dT%H:%M:%S.%fZ"),  # of the frames
+            "rate_hz": self.rate_hz,
+            "robots": [r.to_json() for r in update.robots],
+            "changed_cells": int(update.changed.sum()),
+        }
+        return encode_live_heightmap(
+            update.heightmap,
+            self.session_id,
+            update.sequence,
+            meta,
+            {"changed": update.changed, "held": update.held},
+        )

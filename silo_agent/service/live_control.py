@@ -107,7 +107,7 @@ class LiveControl:
             self._wake.set()
 
         def publish(payload: bytes, period: float) -> None:
-            self.telemetry.publish_live(payload, max_age_s=period, qos=self.config.live.qos)
+            self.telemetry.publish_live(payload, period, qos=self.config.live.qos)
 
         self.session = LiveSession(
             self.config, session_id, rate, duration, publish, ended, start_map=self._last_map()

@@ -33,7 +33,13 @@ from silo_agent.telemetry.commands import (
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
 from silo_agent.telemetry.link import KIND_BINARY, KIND_JSON, KIND_SPARKPLUG
 from silo_agent.telemetry.live_command import LiveCommand
-from silo_agent.telemetry.mqtt_session import Identity, NodeState, Session, live_too_large
+from silo_agent.telemetry.mqtt_session import (
+    Identity,
+    LiveMapSend,
+    NodeState,
+    Session,
+    live_too_large,
+)
 from silo_agent.telemetry.outbox import WILL_SEQ_HEADROOM, Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import (
     CameraState,
@@ -332,9 +338,10 @@ class Telemetry:
         """The later reply: the live session ended (`error` if not as asked)."""
         self.commands.finish_live(command, session_id, error)
 
-    def publish_live(self, payload: bytes, max_age_s: float, qos: int = 0) -> None:
+    def publish_live(self, payload: bytes, period_s: float, qos: int = 0) -> None:
         """Send a live map on `P/heightmap/live` (not retained, not through the outbox): it
-        replaces an unsent one, and is dropped if no connection takes it within max_age_s.
+        replaces an unsent one, is dropped if no connection takes it within a period, and
+        goes no sooner than a period after the previous one.
         LiveMapTooLarge if it (or the last one) is over the broker's Maximum Packet Size:
         sent, it would only get the agent disconnected."""
         _topic, _props, size = self.session.live_packet(payload, qos)
@@ -342,7 +349,9 @@ class Telemetry:
             problem = live_too_large(size, self._links[0].max_packet) or self.state.live_refused
             self.state.live_refused = None
             if problem is None:
-                self.state.live_map = (payload, time.monotonic() + max_age_s, qos)
+                self.state.live_map = LiveMapSend(
+                    payload, time.monotonic() + period_s, qos, period_s
+                )
         if problem is not None:
             raise LiveMapTooLarge(problem)
         for watch in self._live_watchers:

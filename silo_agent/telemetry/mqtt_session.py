@@ -46,6 +46,16 @@ def live_too_large(size: int, max_packet: int | None) -> str | None:
     )
 
 
+@dataclass(frozen=True)
+class LiveMapSend:
+    """A live map waiting for the network thread."""
+
+    payload: bytes
+    stale_after: float  # monotonic: not sent by then, dropped
+    qos: int
+    period_s: float  # the least time between two maps on the wire
+
+
 @dataclass
 class NodeState:
     """What `P/status`, the alarm states, HA discovery and the births report, and which of
@@ -59,7 +69,7 @@ class NodeState:
     alarm_states: dict[str, AlarmEvent] = field(
         default_factory=lambda: {t: idle_alarm(t) for t in ALARM_TYPES}
     )
-    live_map: tuple[bytes, float, int] | None = None  # payload, stale after, QoS
+    live_map: LiveMapSend | None = None
     live_refused: str | None = None  # why the last live map could not be sent
     status_dirty: bool = False
     alarms_dirty: bool = False
@@ -100,6 +110,7 @@ class Session:
         self.spb_node = spb_node
         self._host_online = False
         self._host_ts = -1
+        self._live_sent = -float("inf")  # monotonic time the last live map went out
 
     def status_payload(self, state: AgentState, env: Envelope) -> StatusPayload:
         pending, _ = self.outbox.size()
@@ -204,18 +215,25 @@ class Session:
         return topic, props, publish_packet_size(topic, payload, qos, props, props is not None)
 
     def _send_live(self, link: Link) -> None:
+        """The newest live map, unless stale; held while the previous one went out less than
+        a period ago (the network thread's turns vary: maps must not bunch up on the wire)."""
+        now = time.monotonic()
         with self.state.lock:
-            live, self.state.live_map = self.state.live_map, None
-        if live is None or time.monotonic() > live[1]:
+            live = self.state.live_map
+            if live is None or now < self._live_sent + live.period_s:
+                return
+            self.state.live_map = None
+        if now > live.stale_after:
             return
         assert link.client is not None
-        topic, props, size = self.live_packet(live[0], live[2])
+        topic, props, size = self.live_packet(live.payload, live.qos)
         problem = live_too_large(size, link.max_packet)
         if problem is not None:  # the broker would close the connection over it
             with self.state.lock:
                 self.state.live_refused = problem
             return
-        link.client.publish(topic, live[0], qos=live[2], retain=False, properties=props)
+        link.client.publish(topic, live.payload, qos=live.qos, retain=False, properties=props)
+        self._live_sent = now
 
     def _publish_status(self, link: Link, state: AgentState) -> int:
         payload = self.status(state, self.outbox.next_envelope())

@@ -12,7 +12,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
@@ -139,6 +139,7 @@ class Received:
     payload: bytes
     retain: bool
     properties: Properties | None
+    at: float = field(default_factory=time.monotonic)  # when it arrived
 
 
 class Collector:
