@@ -44,6 +44,16 @@ class LiveConfig(Strict):
     robot_margin_m: float = Field(
         default=0.15, ge=0, description="kept out of the map around the robot's footprint"
     )
+    hold_ahead_s: float = Field(
+        default=1.0,
+        ge=0,
+        description="cells the robot will reach within this time, at its tracked speed, are held",
+    )
+    edge_disparity_px: float = Field(
+        default=0.5,
+        gt=0,
+        description="depth edge: 3 x 3 disparity range above this; its mixed pixels are dropped",
+    )
     model_rate_hz: float = Field(
         default=1.0,
         gt=0,

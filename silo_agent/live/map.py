@@ -12,11 +12,15 @@ pass over the newest frame of each camera:
   height when it is more than `reset_m` away and confirmed, by most of its neighbours
   jumping the same way or by the previous frame (the rake just cut it: a moving scene cannot
   wait for an average to catch up; one noisy cell in one frame does not count);
+- depth pixels along a depth edge (a robot's rim against the grain behind it) that may read
+  between the two surfaces are dropped (`mixed_pixels`, judged in disparity);
 - the robot is found from depth alone, as a compact object with steep sides standing at least
   `robot_min_height_m` above the local surface (a morphological top-hat wider than the robot,
   grain never rising more steeply than its angle of repose); its cells and the disc of
   `robot_radius_m` around their centre (a robot on a slope shows less than its whole top), plus
-  `robot_margin_m`, are held at their last good value and marked in the `held` layer; a
+  `robot_margin_m`, swept ahead along its tracked motion for `hold_ahead_s`, are held at their
+  last good value (at most the local median of the values measured with no robot near) and
+  marked in the `held` layer; a
   site's YOLO model (live/model.py) adds its robot boxes, placed through the depth under them
   (`sighting_of`), and a model sighting alone holds its disc as a depth one does;
 - `changed` marks the cells more than `change_m` from the value they had when last reported
@@ -46,6 +50,9 @@ ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the ope
 MIN_POINTS = 1  # a frame's cell height needs this many points
 SPARSE_NEIGHBOURS = 4  # a one-point cell needs this many measured neighbours (of 8)
 REFILL_GROWTH = 0.01  # share of the grid newly measured that renews the hole-filling table
+D455_BASELINE_M = 0.095  # stereo baseline: depth edges are judged in disparity pixels
+ROBUST_CELLS = 5  # a newly held cell's value: at most the median of this block around it
+MAX_ROBOT_SPEED_M_S = 1.5  # a sighting farther from the last one than this is another robot
 JUMP_MIN_VOTES = 3  # cells of a 3 x 3 block, and two thirds of those measured, jumping the
 # same way: a real change, not noise
 
@@ -150,6 +157,36 @@ def merged(sightings: list[RobotSighting], within_m: float) -> list[RobotSightin
     return out
 
 
+def mixed_pixels(depth: np.ndarray, unit_m: float, fx: float, edge_px: float) -> np.ndarray:
+    """Pixels along a depth edge (a robot's rim against the grain behind it) that may read a
+    depth between the two surfaces: where the 3 x 3 disparity range is above `edge_px`, all
+    but those within a quarter of it of the nearest surface. A mixed pixel's point lies on
+    its ray between the rim and the grain, above the grain and up to metres behind the robot
+    at a wall camera's grazing angle, where no robot disc holds it; the rim itself stays (the
+    robot is found by it), and the grain lost is a pixel wide band in the robot's shadow.
+    Disparity (f x baseline / depth), not depth: a stereo camera's noise and its edges are the
+    same size in it at every range."""
+    valid = depth > 0
+    with np.errstate(divide="ignore"):
+        disparity = np.float32(fx * D455_BASELINE_M / unit_m) / depth.astype(np.float32)
+    low = ndimage.minimum_filter(np.where(valid, disparity, np.inf), 3)
+    high = ndimage.maximum_filter(np.where(valid, disparity, 0.0), 3)
+    spread = high - low
+    return valid & (spread > edge_px) & (high - disparity > spread / 4)
+
+
+def capsule_distance(
+    xs: np.ndarray, ys: np.ndarray, start: tuple[float, float], end: tuple[float, float]
+) -> np.ndarray:
+    """Distance of every point to the segment start -> end (a disc's sweep along it)."""
+    dx, dy = end[0] - start[0], end[1] - start[1]
+    length2 = dx * dx + dy * dy
+    if length2 == 0.0:
+        return np.hypot(xs - start[0], ys - start[1])
+    along = np.clip(((xs - start[0]) * dx + (ys - start[1]) * dy) / length2, 0.0, 1.0)
+    return np.hypot(xs - start[0] - along * dx, ys - start[1] - along * dy)
+
+
 def _rays_key(frame: DepthFrame) -> tuple[object, ...]:
     """What a camera's rays depend on: a frame with another key needs them made again."""
     return (
@@ -209,7 +246,10 @@ class LiveMap:
         self.jumped = np.zeros(grid.shape, dtype=np.int8)  # last frame's side beyond reset_m
         self.frames = np.zeros(grid.shape, dtype=np.int16)  # averaged since the last reset
         self.measured_at = np.full(grid.shape, -np.inf)
+        # each cell's value when last measured with no robot near: what it is held at
+        self.safe = self.height.copy()
         self.sequence = 0
+        self._tracks: list[tuple[float, float, float, float, float]] = []  # x, y, t, vx, vy
         self._rays: dict[str, _Rays] = {}
         rows, cols = grid.shape
         self._region_flat = self.region.ravel()
@@ -236,8 +276,12 @@ class LiveMap:
         d = self.settings.decimation
         for frame in frames:
             rays = self._rays_of(frame)
-            depth = frame.depth[::d, ::d].ravel()
-            valid = np.flatnonzero(depth)
+            image = frame.depth[::d, ::d]
+            mixed = mixed_pixels(
+                image, frame.depth_unit_m, frame.fx, self.settings.edge_disparity_px
+            )
+            depth = image.ravel()
+            valid = np.flatnonzero((depth > 0) & ~mixed.ravel())
             z_cam = depth[valid].astype(np.float32) * np.float32(frame.depth_unit_m)
             ox, oy, oz = rays.origin
             col = ((ox + z_cam * rays.x[valid] - self._origin[0]) * self._scale).astype(np.int64)
@@ -361,6 +405,35 @@ class LiveMap:
 
     # ------------------------------------------------------------ update
 
+    def _motions(self, robots: list[RobotSighting], now_s: float) -> list[tuple[float, float]]:
+        """Each robot's velocity (m/s) from its sighting in the last map (the nearest one it
+        can have driven from), smoothed over maps; 0 for a robot new to the map."""
+        tracks = []
+        for robot in robots:
+
+            def gap(track: tuple[float, ...], robot: RobotSighting = robot) -> float:
+                return float(np.hypot(robot.x - track[0], robot.y - track[1]))
+
+            reachable = [
+                t
+                for t in self._tracks
+                if now_s > t[2]
+                and gap(t) <= MAX_ROBOT_SPEED_M_S * (now_s - t[2]) + self.settings.robot_radius_m
+            ]
+            best = min(reachable, key=gap, default=None)
+            if best is None:
+                vx = vy = 0.0
+            else:
+                dt = now_s - best[2]
+                vx = 0.5 * (robot.x - best[0]) / dt + 0.5 * best[3]
+                vy = 0.5 * (robot.y - best[1]) / dt + 0.5 * best[4]
+                speed = float(np.hypot(vx, vy))
+                if speed > MAX_ROBOT_SPEED_M_S:
+                    vx, vy = vx * MAX_ROBOT_SPEED_M_S / speed, vy * MAX_ROBOT_SPEED_M_S / speed
+            tracks.append((robot.x, robot.y, now_s, vx, vy))
+        self._tracks = tracks
+        return [(t[3], t[4]) for t in tracks]
+
     def _filled(self) -> np.ndarray:
         """The running heights with every cell never measured taken from its nearest measured
         one (a hole's edge value, not a guess across it; `observed` says which is which).
@@ -400,15 +473,29 @@ class LiveMap:
         if margin and robot_cells.any():
             held = ndimage.binary_dilation(robot_cells, iterations=margin)
         xs, ys = self._centres
-        for robot in robots:  # a few robots, each a vectorised disc
-            held = held | (
-                np.hypot(xs - robot.x, ys - robot.y)
-                <= max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m
-            )
+        # each robot's disc, swept along where its tracked motion takes it within
+        # hold_ahead_s: a cell is held before the robot's rim, its noise and its mixed pixels
+        # reach it, not once they have got into its value
+        for robot, (vx, vy) in zip(robots, self._motions(robots, now_s), strict=True):
+            ahead = (robot.x + vx * s.hold_ahead_s, robot.y + vy * s.hold_ahead_s)
+            reach = max(robot.radius_m, s.robot_radius_m) + s.robot_margin_m
+            held = held | (capsule_distance(xs, ys, (robot.x, robot.y), ahead) <= reach)
         # a cell the robot covered stays held while the frame still reads well above its last
         # good value: the robot has not left it, whether or not this frame's detection says so
         held |= self.held & measured & (frame - self.height > s.reset_m)
         held &= self.region
+        # a cell newly held keeps the lower of its value and the median of the values its
+        # ROBUST_CELLS block had when last measured with no robot near: the robot's rim, its
+        # mixed pixels and its depth noise only raise cells near it, and a lone cell that a
+        # burst of noise raised is outvoted by its neighbours
+        near = held
+        if margin and held.any():
+            near = ndimage.maximum_filter(held, size=2 * margin + 1)
+        onset = held & ~self.held
+        if onset.any():
+            known = np.where(np.isfinite(self.safe), self.safe, self.height)
+            robust = ndimage.median_filter(known, size=ROBUST_CELLS)
+            self.height[onset] = np.fmin(self.height[onset], robust[onset])
         update = measured & ~held
         delta = frame - self.height
         side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
@@ -427,6 +514,8 @@ class LiveMap:
         self.height[blend] += weight * delta[blend]
         self.seen |= update
         self.measured_at[update] = now_s
+        clear = update & ~near
+        self.safe[clear] = self.height[clear]
 
         heights = np.where(self.region, self._filled(), np.nan)
         changed = (

@@ -16,6 +16,7 @@ import structlog
 
 from silo_agent.config import Config
 from silo_agent.grid.heightmap import HeightMap
+from silo_agent.live.coverage import session_problem
 from silo_agent.live.session import LiveSession
 from silo_agent.telemetry.client import CommandRejected, Telemetry
 from silo_agent.telemetry.live_command import LiveCommand, session_limits
@@ -72,6 +73,10 @@ class LiveControl:
                     rate, duration = session_limits(self.config.live, request)
                 except ValueError as exc:
                     raise CommandRejected(str(exc)) from None
+                serials = self.config.live.cameras or [c.serial for c in self.config.cameras]
+                problem = session_problem(self.config, serials, self._last_map())
+                if problem is not None:
+                    raise CommandRejected(problem)
                 self._count += 1
                 session_id = f"{self.config.silo.id}-live-{datetime.now(UTC):%Y%m%dT%H%M%SZ}"
                 session_id += f"-{self._count}"

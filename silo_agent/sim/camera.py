@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 from scipy.ndimage import gaussian_filter
 from scipy.special import ndtri
 
@@ -63,6 +64,7 @@ class NoiseModel:
     hole_fraction: float = 0.01  # pixels lost in blobs
     speckle_fraction: float = 0.002  # isolated lost pixels
     surface_factor: float = 1.0  # real surfaces: 3-5x the ideal target's error at 2.5-5x
+    mixed_edge_share: float = 0.0  # pixels along a depth edge reading a depth in between
 
     def rms_m(self, depth_m: np.ndarray | float, focal_px: float) -> np.ndarray | float:
         """The D455 depth RMS error at a depth."""
@@ -173,10 +175,29 @@ def trace(
     return Trace(hits.t.astype(np.float64).reshape(shape), cos_incidence.reshape(shape), k, color)
 
 
+EDGE_JUMP = 0.05  # a depth edge: the 3 x 3 depth range above this share of the depth
+
+
+def mixed_edges(depth: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """A stereo matcher's window straddling a depth edge (a robot's rim against the grain
+    behind it) returns a depth in between for some pixels along it: `share` of the edge
+    pixels read a uniform mix of the nearest and farthest depth around them."""
+    finite = np.isfinite(depth)
+    near = ndimage.minimum_filter(np.where(finite, depth, np.inf), 3)
+    far = ndimage.maximum_filter(np.where(finite, depth, 0.0), 3)
+    edge = finite & np.isfinite(near) & (far - near > EDGE_JUMP * near)
+    mixed = edge & (rng.random(depth.shape) < share)
+    with np.errstate(invalid="ignore"):  # inf - inf where no surface is near: not mixed
+        return np.where(mixed, near + rng.random(depth.shape) * (far - near), depth)
+
+
 def expose(seen: Trace, noise: NoiseModel, rng: np.random.Generator) -> Frame:
     """One noisy, quantised depth frame with the D455's invalid pixels."""
     hit = np.isfinite(seen.depth)
-    measured = noisy_depth(np.where(hit, seen.depth, 0.0), seen.intrinsics.fx, noise, rng)
+    true = seen.depth
+    if noise.mixed_edge_share > 0:
+        true = mixed_edges(true, noise.mixed_edge_share, rng)
+    measured = noisy_depth(np.where(hit, true, 0.0), seen.intrinsics.fx, noise, rng)
     measured[~hit] = np.inf
     invalid = dropouts(measured, seen.cos_incidence, seen.intrinsics, noise, rng)
     counts = np.rint(np.where(invalid, 0.0, measured) / noise.depth_unit_m)

@@ -41,6 +41,7 @@ SPEED_M_S = 0.3
 REGION_HALF_M = 3.0  # the live map's 6 x 6 m
 WALL_MARGIN_M = 0.5  # between the region and the walls
 RAKE_CLEARANCE_M = 0.02  # the blade leaves this much above the flat level
+MIXED_EDGE_SHARE = 0.5  # of the pixels along the robot's rim, reading between it and the grain
 _NOISE_STREAM = 7  # random stream of the moving scene's frames (simulate.rng_for)
 
 
@@ -191,7 +192,7 @@ class RobotRig:
         """`mesh_step` 0.01 m keeps the rendered surface within a millimetre of the truth;
         coarser builds the moving world faster (the daemon's demo, not the accuracy tests)."""
         self.robot = robot or RakingRobot(mounded_bay(grain("wheat")))
-        self.noise = noise or NoiseModel()
+        self.noise = noise or NoiseModel(mixed_edge_share=MIXED_EDGE_SHARE)
         self.seed = seed
         self.mesh_step = mesh_step
         self.views: list[SimView] = [
