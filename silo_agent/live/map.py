@@ -492,10 +492,17 @@ class LiveMap:
         if margin and held.any():
             near = ndimage.maximum_filter(held, size=2 * margin + 1)
         onset = held & ~self.held
-        if onset.any():
-            known = np.where(np.isfinite(self.safe), self.safe, self.height)
-            robust = ndimage.median_filter(known, size=ROBUST_CELLS)
-            self.height[onset] = np.fmin(self.height[onset], robust[onset])
+        if onset.any():  # the median over the onset cells' bounding box, not the whole grid
+            rows, cols = np.nonzero(onset)
+            pad = ROBUST_CELLS // 2
+            box = (
+                slice(max(rows.min() - pad, 0), rows.max() + pad + 1),
+                slice(max(cols.min() - pad, 0), cols.max() + pad + 1),
+            )
+            known = np.where(np.isfinite(self.safe[box]), self.safe[box], self.height[box])
+            robust = ndimage.median_filter(known, size=ROBUST_CELLS, mode="nearest")
+            here = onset[box]
+            self.height[box][here] = np.fmin(self.height[box][here], robust[here])
         update = measured & ~held
         delta = frame - self.height
         side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
