@@ -37,6 +37,7 @@ from benchlib import header
 from mosquitto import HOST, MOSQUITTO, Broker
 from paho.mqtt.enums import CallbackAPIVersion
 
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import MqttConfig
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.telemetry.client import Telemetry
@@ -59,25 +60,38 @@ def heightmap(seed: int) -> HeightMap:
     return HeightMap((ox, oy), step, heights, observed, inside)
 
 
-def summary(silo: str, index: int) -> dict:
+def summary(silo: str, index: int) -> ScanSummary:
     """A scan result as the pipeline publishes it."""
     stamp = f"2026-11-22T{index % 24:02d}:00:00.000Z"
-    return {
-        "scan_id": f"{silo}-20261122T{index % 24:02d}0000Z-{index}",
-        "captured_at": stamp,
-        "volume_m3": 12.345 + index * 0.01,
-        "mass_t": 9.506,
-        "coverage": 0.87,
-        "grid_step_m": 0.02,
-        "surface": {"min_z": 0.1, "mean_z": 0.9, "max_z": 1.4},
-        "level": {"min": 0.1, "mean": 0.9, "max": 1.4},
-        "valid": True,
-        "invalid_reason": None,
-        "degraded": False,
-        "cameras": {"used": ["cam-a", "cam-b", "cam-c", "cam-d"], "failed": []},
-        "piles": [{"x": 0.5, "y": -0.2, "height_m": 1.1}],
-        "timings": {"capture_s": 4.2, "reconstruct_s": 1.3},
-    }
+    return ScanSummary.from_json(
+        {
+            "scan_id": f"{silo}-20261122T{index % 24:02d}0000Z-{index}",
+            "captured_at": stamp,
+            "volume_m3": 12.345 + index * 0.01,
+            "mass_t": 9.506,
+            "coverage": 0.87,
+            "grid_step_m": 0.02,
+            "surface": {"min_z": 0.1, "mean_z": 0.9, "max_z": 1.4},
+            "level": {"min": 0.1, "mean": 0.9, "max": 1.4},
+            "valid": True,
+            "invalid_reason": None,
+            "degraded": False,
+            "cameras": {"used": ["cam-a", "cam-b", "cam-c", "cam-d"], "failed": []},
+            "piles": [
+                {
+                    "id": 1,
+                    "detector": "geometric",
+                    "centroid": {"x": 0.5, "y": -0.2},
+                    "peak": {"x": 0.5, "y": -0.2},
+                    "peak_height_m": 1.1,
+                    "footprint_m2": 0.6,
+                    "volume_m3": 0.2,
+                    "confidence": None,
+                }
+            ],
+            "timings": {"capture_s": 4.2, "reconstruct_s": 1.3},
+        }
+    )
 
 
 def worker(

@@ -321,8 +321,8 @@ def test_every_reading_carries_the_documented_attributes() -> None:
         assert cmps[key]["json_attributes_topic"] == f"{BASE}/volume", key
         attributes = json.loads(render(cmps[key]["json_attributes_template"], volume))
         assert attributes == {
-            "scan_id": degraded["scan_id"],
-            "captured_at": degraded["captured_at"],
+            "scan_id": degraded.scan_id,
+            "captured_at": degraded.captured_at,
             "valid": True,
             "degraded": True,
         }, key
