@@ -51,7 +51,7 @@ class LiveMapSend:
     """A live map waiting for the network thread."""
 
     payload: bytes
-    stale_after: float  # monotonic: not sent by then, dropped
+    stale_after: float  # monotonic: not sent by then (or a period after it may go), dropped
     qos: int
     period_s: float  # the least time between two maps on the wire
 
@@ -223,8 +223,8 @@ class Session:
             if live is None or now < self._live_sent + live.period_s:
                 return
             self.state.live_map = None
-        if now > live.stale_after:
-            return
+        if now > max(live.stale_after, self._live_sent + 2 * live.period_s):
+            return  # not sent within a period of when it could go: stale
         assert link.client is not None
         topic, props, size = self.live_packet(live.payload, live.qos)
         problem = live_too_large(size, link.max_packet)
