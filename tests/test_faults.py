@@ -309,7 +309,8 @@ def in_process(tmp_path, broker, collector_factory) -> Iterator[InProcess]:
     main.join(30)
 
 
-LIVE_SECTION = "\n[live]\ngrid_step_m = 0.1\nrate_hz = 4.0\n"
+# two 424x240 cameras fail the session-start check (live/coverage.py): not what is tested here
+LIVE_SECTION = "\n[live]\ngrid_step_m = 0.1\nrate_hz = 4.0\ncoverage_check = false\n"
 
 
 @pytest.mark.parametrize("name", ["mqtt", "metrics", "scan", "live"])

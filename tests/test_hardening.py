@@ -15,7 +15,8 @@ from tests.support.agent import BASE, Daemon, write_config
 from tests.support.mqtt import validate_json
 from tests.support.mqtt_broker import Broker, Collector
 
-LIVE_SECTION = "\n[live]\ngrid_step_m = 0.1\nrate_hz = 4.0\n"
+# two 424x240 cameras fail the session-start check (live/coverage.py): not what is tested here
+LIVE_SECTION = "\n[live]\ngrid_step_m = 0.1\nrate_hz = 4.0\ncoverage_check = false\n"
 REPLIES = "test/hardening-replies"
 
 

@@ -49,6 +49,10 @@ class LiveConfig(Strict):
         ge=0,
         description="cells the robot will reach within this time, at its tracked speed, are held",
     )
+    coverage_check: bool = Field(
+        default=True,
+        description="refuse a session whose cameras cannot keep the robot out (docs/mqtt.md)",
+    )
     edge_disparity_px: float = Field(
         default=0.5,
         gt=0,

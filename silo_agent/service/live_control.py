@@ -75,8 +75,10 @@ class LiveControl:
                     raise CommandRejected(str(exc)) from None
                 serials = self.config.live.cameras or [c.serial for c in self.config.cameras]
                 problem = session_problem(self.config, serials, self._last_map())
-                if problem is not None:
+                if problem is not None and self.config.live.coverage_check:
                     raise CommandRejected(problem)
+                if problem is not None:
+                    log.warning("live session started against the check", problem=problem)
                 self._count += 1
                 session_id = f"{self.config.silo.id}-live-{datetime.now(UTC):%Y%m%dT%H%M%SZ}"
                 session_id += f"-{self._count}"
