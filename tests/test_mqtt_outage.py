@@ -96,7 +96,7 @@ keepalive_s = 5
 def _cli(*args: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen(
-        [sys.executable, "-m", "silo_agent.telemetry", *args],
+        [sys.executable, "-m", "silo_agent", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env=env,

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from silo_agent.analysis.summary import ScanSummary
+from silo_agent.cli import main
 from silo_agent.config import ConfigError, MqttConfig
 from silo_agent.grid.heightmap import HeightMap
-from silo_agent.telemetry import __main__ as cli
 from silo_agent.telemetry.client import read_secret
 from silo_agent.telemetry.heightmap_codec import (
     HEADER,
@@ -24,6 +24,7 @@ from silo_agent.telemetry.heightmap_codec import (
 )
 from silo_agent.telemetry.outbox import Outbox, OutboxLimits
 from silo_agent.telemetry.payloads import check_summary, json_schemas, render_schema
+from tests.support.agent import write_config
 from tests.support.mqtt import SCHEMAS, realistic_heightmap, summary, summary_json
 
 
@@ -32,7 +33,7 @@ def test_committed_schemas_match_the_models():
     assert committed == set(json_schemas())
     for name, schema in json_schemas().items():
         assert (SCHEMAS / name).read_text() == render_schema(schema), name
-    assert cli.main(["schemas", "--check", str(SCHEMAS)]) == 0
+    assert main(["schemas", "--check", str(SCHEMAS)]) == 0
 
 
 def test_summary_problems_are_named():
@@ -253,3 +254,22 @@ def test_a_bad_result_queues_nothing_and_stale_sparkplug_rows_are_dropped(tmp_pa
     plain = Telemetry(mqtt_config(Broker(tmp_path / "b"), tmp_path), "silo-t", ["cam-a"])
     assert sorted(r.kind for r in plain.outbox.pending()) == ["json", "json"]
     plain.outbox.close()
+
+
+def test_publish_by_hand_refuses_a_bad_file_in_one_line(tmp_path, capsys):
+    """`silo-agent publish`: a result or event file that is no summary or event is exit 65
+    with one line naming the file and the problem, before anything is queued."""
+    config = write_config(tmp_path / "agent.toml", 9, tmp_path)
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps({**summary_json(), "level": [1, 2]}))
+    assert main(["publish", "--config", str(config), "--result", str(result)]) == 65
+    assert (
+        capsys.readouterr().err.strip().startswith(f"silo-agent: {result}: result summary: level")
+    )
+    result.write_text(json.dumps(summary_json()))
+    event = tmp_path / "event.json"
+    event.write_text(json.dumps({"type": "x", "state": "raised", "colour": "red"}))
+    argv = ["publish", "--config", str(config), "--result", str(result), "--alarm", str(event)]
+    assert main(argv) == 65
+    assert "unknown key(s) colour" in capsys.readouterr().err
+    assert not (tmp_path / "outbox.sqlite").exists()

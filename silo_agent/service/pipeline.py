@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import structlog
 
@@ -22,27 +22,14 @@ from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.alarms import AlarmState, Inputs, clear_switched_off, evaluate
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.atomic import write_atomic
-from silo_agent.capture import CameraFailure, capture_all
+from silo_agent.capture import CaptureResult
 from silo_agent.config import Config
 from silo_agent.reconstruct import Reconstruction
-from silo_agent.scan import Scan, ScanError, gravity_angles
-from silo_agent.service.scan_path import (
-    CONFIG_KEY,
-    analyse_with,
-    keep_result,
-    new_scan,
-    no_result_summary,
-    previous_piles,
-    settings_of,
-    summary_of,
-)
-from silo_agent.storage.audit import AuditCache, dump_json, is_disk_full
+from silo_agent.scan import gravity_angles
+from silo_agent.service.scan_once import Stages, scan_once
+from silo_agent.storage.audit import AuditCache, dump_json
 from silo_agent.telemetry.client import Telemetry
 from silo_agent.telemetry.prometheus import Metrics
-
-if TYPE_CHECKING:
-    from silo_agent.analysis.scan_analysis import ScanAnalysis
-    from silo_agent.detect import Pile
 
 log = structlog.get_logger(__name__)
 
@@ -116,8 +103,6 @@ class Pipeline:
     ) -> Outcome:
         """One scan; never raises except ScanAbandoned."""
         config = self.config
-        captured_at = f"{started:%Y-%m-%dT%H:%M:%SZ}"
-        timings: dict[str, float] = {}
         scan_number = self.count
         self.count += 1
 
@@ -127,64 +112,21 @@ class Pipeline:
             if time.monotonic() > deadline:
                 raise ScanAbandoned(f"deadline of {config.schedule.scan_timeout_s} s exceeded")
 
-        def lap(stage: str, since: float) -> float:
-            now = time.perf_counter()
-            timings[f"{stage}_s"] = now - since
-            self.metrics.stage_seconds.labels(stage).observe(now - since)
-            return now
-
-        t = time.perf_counter()
+        stages = Stages(
+            timed=lambda stage, seconds: self.metrics.stage_seconds.labels(stage).observe(seconds),
+            captured=lambda capture: self._captured(scan_id, capture),
+            check=check,
+        )
         log.info("scan started", scan_id=scan_id)
-        capture = capture_all(config, scan_number)
-        t = lap("capture", t)
-        cameras: dict[str, tuple[str, str | None]] = {
-            c.serial: ("ok", None) for c in capture.clouds
-        }
-        cameras.update({f.serial: ("failed", f.error) for f in capture.failures})
-        for serial, (camera_state, _error) in cameras.items():
-            self.metrics.camera_up.labels(serial).set(1 if camera_state == "ok" else 0)
-        self.telemetry.set_status(cameras=cameras)
-        for failure in capture.failures:
-            log.warning(
-                "camera failed", scan_id=scan_id, serial=failure.serial, error=failure.error
-            )
-        check()
-        failed = tuple((f.serial, f.error) for f in capture.failures)
-        if not capture.clouds:
-            return self._failed(
-                scan_id,
-                captured_at,
-                "capture: no camera delivered a cloud",
-                capture.failures,
-                timings,
-                failed,
-            )
+        run = scan_once(config, self.cache, scan_id, started, stages, self.protected, scan_number)
+        failed = tuple((f.serial, f.error) for f in run.capture.failures)
+        analysed = run.analysed
+        if analysed is None or run.scan is None:
+            if run.error is not None:
+                log.error("processing failed", scan_id=scan_id, exc_info=run.error)
+            return self._failed(run.summary, failed, run.cache_full)
 
-        scan = new_scan(config, scan_id, started, capture.clouds, capture.failures)
-        directory, cache_full = self._write(scan)
-        t = lap("audit", t)
-        check()
-
-        previous = previous_piles(self.cache, scan_id)
-        try:
-            analysed = analyse_with(scan, settings_of(scan), previous)
-        except Exception as exc:  # a bug or a bad model must not stop the agent
-            log.exception("processing failed", scan_id=scan_id)
-            return self._failed(
-                scan_id,
-                captured_at,
-                f"processing: {exc}",
-                capture.failures,
-                timings,
-                failed,
-                cache_full,
-            )
-        t = lap("reconstruct", t)
-        check()
-        summary = summary_of(analysed, scan, timings)
-        if directory is not None:  # kept before the alarms, so losing it raises `cache`
-            cache_full = not self._keep_result(directory, summary, analysed, previous)
-        result = analysed.reconstruction
+        summary, result = run.summary, analysed.reconstruction
         inputs = Inputs(
             scan_id=scan_id,
             heightmap=result.heightmap,
@@ -195,22 +137,22 @@ class Pipeline:
             ceiling_z=config.silo.ceiling_z,
             max_z=summary.surface.max_z if summary.surface is not None else None,
             failed_cameras=failed,
-            cache_full=cache_full,
+            cache_full=run.cache_full,
             baseline=self._baseline(),
             baseline_scan_id=self.config.alarms.baseline_scan_id or self.state.baseline_scan_id,
             registration_residual_m={k: r.median_m for k, r in result.registration.items()},
-            gravity_deg=gravity_angles(scan.cameras),
+            gravity_deg=gravity_angles(run.scan.cameras),
             gravity_tolerance_deg={c.serial: c.gravity_tolerance_deg for c in config.cameras},
         )
         events, state = evaluate(self.state, inputs, config.alarms, calibration=config.calibration)
-        t = lap("alarms", t)
+        stages.lap("alarms")
         check()
 
-        summary = replace(summary, timings={k: round(v, 4) for k, v in timings.items()})
+        summary = replace(summary, timings={k: round(v, 4) for k, v in stages.timings.items()})
         self.state = state
         self._save_state()
         self._publish(summary, result, events)
-        lap("publish", t)
+        stages.lap("publish")
         self.cache.enforce(self.protected())
         outcome = "ok" if result.valid else "invalid"
         self._count(outcome, summary)
@@ -222,64 +164,27 @@ class Pipeline:
             coverage=round(result.coverage, 4),
             alarms=[f"{e.type}:{e.state}" for e in events],
         )
-        return Outcome(scan_id, outcome, result.invalid_reason, summary, directory, events)
+        return Outcome(scan_id, outcome, result.invalid_reason, summary, run.directory, events)
 
-    def _write(self, scan: Scan) -> tuple[Path | None, bool]:
-        """The raw scan into the cache; on a full disk evict and retry once, then go on
-        uncached (the `cache` alarm says so)."""
-        snapshot = scan.extra[CONFIG_KEY]
-        for attempt in range(2):
-            try:
-                return self.cache.write_scan(scan, snapshot), False
-            except OSError as exc:
-                if not is_disk_full(exc):
-                    log.error(
-                        "cannot write the scan to the audit cache",
-                        scan_id=scan.scan_id,
-                        error=str(exc),
-                    )
-                    return None, True
-                if attempt == 0:
-                    removed = self.cache.evict_for_space(self.protected())
-                    log.warning("disk full, evicted scans", removed=removed)
-            except ScanError as exc:
-                log.error("cannot write the scan", scan_id=scan.scan_id, error=str(exc))
-                return None, True
-        log.error("disk still full, scan published uncached", scan_id=scan.scan_id)
-        return None, True
-
-    def _keep_result(
-        self, directory: Path, summary: ScanSummary, result: ScanAnalysis, previous: list[Pile]
-    ) -> bool:
-        """result.json, the height map and inputs.json into the scan's directory; on a full
-        disk evict older scans and retry once. False if they could not all be kept."""
-        try:
-            keep_result(directory, summary, result, previous)
-            return True
-        except OSError as exc:
-            error = exc
-        if is_disk_full(error):
-            removed = self.cache.evict_for_space(self.protected() | {directory.name})
-            log.warning("disk full, evicted scans", removed=removed)
-            try:
-                keep_result(directory, summary, result, previous)
-                return True
-            except OSError as exc:
-                error = exc
-        log.error("cannot keep the result with the scan", scan_id=directory.name, error=str(error))
-        return False
+    def _captured(self, scan_id: str, capture: CaptureResult) -> None:
+        """The cameras' states into the metrics and `P/status`; a failed one is logged."""
+        cameras: dict[str, tuple[str, str | None]] = {
+            c.serial: ("ok", None) for c in capture.clouds
+        }
+        cameras.update({f.serial: ("failed", f.error) for f in capture.failures})
+        for serial, (camera_state, _error) in cameras.items():
+            self.metrics.camera_up.labels(serial).set(1 if camera_state == "ok" else 0)
+        self.telemetry.set_status(cameras=cameras)
+        for failure in capture.failures:
+            log.warning(
+                "camera failed", scan_id=scan_id, serial=failure.serial, error=failure.error
+            )
 
     def _failed(
-        self,
-        scan_id: str,
-        captured_at: str,
-        reason: str,
-        failures: list[CameraFailure],
-        timings: dict[str, float],
-        failed: tuple[tuple[str, str], ...],
-        cache_full: bool = False,
+        self, summary: ScanSummary, failed: tuple[tuple[str, str], ...], cache_full: bool
     ) -> Outcome:
-        summary = no_result_summary(self.config, scan_id, captured_at, reason, failures, timings)
+        """Report a scan without a result: `P/scan` with its reason, the alarms."""
+        scan_id, reason = summary.scan_id, summary.invalid_reason
         inputs = Inputs(
             scan_id=scan_id,
             heightmap=None,

@@ -1,0 +1,86 @@
+"""`silo-agent replay` and `scans`: the audit cache (storage/audit.py, service/scan_path.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from silo_agent.base.exits import DATA_ERROR, FAILURE, OK, USAGE
+from silo_agent.cli.common import fail, load_config
+from silo_agent.config import ConfigError
+from silo_agent.scan import ScanError, read_manifest
+from silo_agent.service.scan_path import replay as replayed
+from silo_agent.storage.audit import RESULT, AuditCache, comparable, differences
+
+
+def scan_dir(target: str, config_path: Path | None) -> Path:
+    """A scan directory given as a path, or as a scan id in the config's audit cache."""
+    path = Path(target)
+    if path.is_dir():
+        return path
+    if config_path is None:
+        raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
+    config = load_config(config_path)
+    return AuditCache(config.audit, config.silo.id).find(target)
+
+
+def replay(args: argparse.Namespace) -> int:
+    try:
+        directory = scan_dir(args.scan, args.config)
+        published, again = replayed(directory)
+    except ScanError as exc:
+        return fail(str(exc), DATA_ERROR)
+    diff = differences(comparable(published), comparable(again))
+    if diff:
+        print(f"{directory.name}: replay DIFFERS from the published result:")
+        for line in diff:
+            print(f"  {line}")
+        return FAILURE
+    print(
+        f"{directory.name}: replay identical to the published result "
+        f"(volume {again.get('volume_m3')} m³; timings not compared)"
+    )
+    return OK
+
+
+def scans(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    cache = AuditCache(config.audit, config.silo.id)
+    if args.action == "list":
+        entries = cache.entries()
+        for e in entries:
+            try:
+                result = json.loads((e.path / RESULT).read_text(encoding="utf-8"))
+                volume = result.get("volume_m3")
+                what = (f"{volume:.4f} m³" if volume is not None else "no volume") + (
+                    "" if result.get("valid") else " (invalid)"
+                )
+            except (OSError, ValueError):
+                what = "no result"
+            print(
+                f"{e.scan_id}  {e.captured_at:%Y-%m-%dT%H:%M:%SZ}  {e.bytes / 1e6:8.2f} MB  {what}"
+            )
+        total = sum(e.bytes for e in entries)
+        print(
+            f"{len(entries)} scan(s), {total / 1e6:.2f} MB of {cache.cfg.max_bytes / 1e6:.0f} MB"
+            f" in {cache.directory}"
+        )
+        return OK
+    if args.scan_id is None:
+        return fail(f"scans {args.action} needs a SCAN_ID", USAGE)
+    try:
+        path = cache.find(args.scan_id)
+    except ScanError as exc:
+        return fail(str(exc), FAILURE)
+    if args.action == "show":
+        manifest = read_manifest(path)  # bounded and checked, like any scan directory
+        manifest.pop("config", None)
+        report = {"scan_dir": str(path), "manifest": manifest}
+        if (path / RESULT).is_file():
+            report["result"] = json.loads((path / RESULT).read_text(encoding="utf-8"))
+        print(json.dumps(report, indent=2))
+        return OK
+    out = args.out or Path(f"{args.scan_id}.tar.gz")
+    print(cache.export(args.scan_id, out))
+    return OK

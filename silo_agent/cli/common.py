@@ -1,0 +1,77 @@
+"""What every command shares: the one-line failure, loading the config on first use, logging
+and the argument types. Imports nothing heavy: `process --help` loads this."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from silo_agent.config import Config
+
+
+def fail(message: str, status: int) -> int:
+    """`silo-agent: <message>` on stderr; `status` back for the command to return."""
+    print(f"silo-agent: {message}", file=sys.stderr)
+    return status
+
+
+def load_config(path: Path, service: bool = False) -> Config:
+    """The validated config file; pydantic and the config models load here, on first use,
+    not at start-up (about 0.1 s that `process` without --config and `--help` never pay)."""
+    from silo_agent.config import load_config as load
+
+    return load(path, service=service)
+
+
+def configure_logging(args: argparse.Namespace) -> None:
+    """structlog set up for the command's --log-level (structlog loads here, not at start)."""
+    from silo_agent.base.log import configure_logging as configure
+
+    configure(args.log_level)
+
+
+def seconds(text: str) -> float:
+    """A duration > 0, in seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"want a duration in seconds > 0, got {text!r}")
+    return value
+
+
+def positive(text: str) -> int:
+    """A whole number >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"want a whole number >= 1, got {text!r}")
+    return value
+
+
+def views(text: str) -> list[str]:
+    """Distinct camera positions, e.g. `A1,A5` (sim.layouts.VIEWS)."""
+    from silo_agent.sim.layouts import VIEWS  # at parse time, for `simulate` only
+
+    chosen = [v.strip().upper() for v in text.split(",") if v.strip()]
+    unknown = [v for v in chosen if v not in VIEWS]
+    if not chosen or unknown or len(set(chosen)) != len(chosen):
+        raise argparse.ArgumentTypeError(f"want distinct views among {', '.join(VIEWS)}")
+    return chosen
+
+
+def calib_error(text: str) -> tuple[float, float]:
+    """`DEG,M`: how far simulated poses are off the written extrinsics."""
+    try:
+        degrees, metres = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("want DEG,M, e.g. 0.5,0.01") from None
+    if degrees < 0 or metres < 0:
+        raise argparse.ArgumentTypeError("DEG and M must be >= 0")
+    return degrees, metres

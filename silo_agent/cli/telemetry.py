@@ -1,0 +1,118 @@
+"""`silo-agent publish`, `flush` and `schemas`: MQTT by hand (telemetry/client.py).
+
+publish: queue the messages (one JSON line per queued message on stdout: topic, msg_id, seq,
+ts), then send them; exit 0 when the broker has all of them, 1 if some are still pending after
+--timeout (they stay in the outbox for the next run). flush: send what an earlier run left in
+the outbox (then stay connected --linger seconds). schemas: write config/schemas/*.json from
+the payload models, or check they are current.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from silo_agent.analysis.alarm_types import AlarmEvent
+from silo_agent.analysis.summary import ScanSummary
+from silo_agent.base.exits import DATA_ERROR, FAILURE, OK
+from silo_agent.cli.common import fail, load_config
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.telemetry.client import Telemetry
+from silo_agent.telemetry.payloads import Envelope, json_schemas, render_schema, write_schemas
+
+Parsed = TypeVar("Parsed")
+
+DEFAULT_SCHEMAS = Path(__file__).resolve().parents[2] / "config" / "schemas"
+
+
+def load_heightmap(path: Path) -> HeightMap:
+    """A height map saved with numpy.savez(origin=, step=, heights=, observed=, inside=)."""
+    with np.load(path) as data:
+        return HeightMap(
+            origin=(float(data["origin"][0]), float(data["origin"][1])),
+            step=float(data["step"]),
+            heights=data["heights"],
+            observed=data["observed"].astype(bool),
+            inside=data["inside"],
+        )
+
+
+def _emit(topic: str, env: Envelope) -> None:
+    print(json.dumps({"topic": topic, **env.model_dump()}), flush=True)
+
+
+def _send(telemetry: Telemetry, timeout: float, linger: float = 0.0) -> int:
+    telemetry.start()
+    end = time.monotonic() + timeout
+    while telemetry.outbox.size()[0] and time.monotonic() < end:
+        time.sleep(0.05)
+    pending = telemetry.outbox.size()[0]
+    if not pending and linger > 0:
+        print("drained", flush=True)
+        time.sleep(linger)
+    telemetry.stop()
+    if pending:
+        print(f"silo-agent: {pending} message(s) still pending in the outbox", file=sys.stderr)
+        return FAILURE
+    return OK
+
+
+def _read(path: Path, parse: Callable[[dict[str, Any]], Parsed]) -> Parsed:
+    """A JSON file parsed; ValueError naming the file and the problem."""
+    try:
+        return parse(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def publish(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    try:
+        summary = _read(args.result, ScanSummary.from_json)
+        event = _read(args.alarm, AlarmEvent.from_json) if args.alarm else None
+    except ValueError as exc:
+        return fail(str(exc), DATA_ERROR)
+    heightmap = load_heightmap(args.heightmap) if args.heightmap else None
+    telemetry = Telemetry.from_config(config)
+    for k in range(args.repeat):
+        one = summary
+        if args.repeat > 1:
+            one = replace(summary, scan_id=f"{summary.scan_id}-{k}")
+        for topic, env in zip(
+            ("scan", "volume", "heightmap"), telemetry.publish_result(one, heightmap), strict=False
+        ):
+            _emit(telemetry.topic(topic), env)
+    if event is not None:
+        _emit(telemetry.topic("alarm"), telemetry.publish_alarm(event))
+    return _send(telemetry, args.timeout)
+
+
+def flush(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    return _send(Telemetry.from_config(config), args.timeout, args.linger)
+
+
+def schemas(args: argparse.Namespace) -> int:
+    directory: Path = args.dir or DEFAULT_SCHEMAS
+    if not args.check:
+        for path in write_schemas(directory):
+            print(path)
+        return OK
+    stale = [
+        name
+        for name, schema in json_schemas().items()
+        if not (directory / name).is_file()
+        or (directory / name).read_text(encoding="utf-8") != render_schema(schema)
+    ]
+    if stale:
+        print(f"out of date in {directory}: {', '.join(stale)}", file=sys.stderr)
+        return FAILURE
+    return OK
