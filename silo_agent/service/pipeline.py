@@ -1,5 +1,8 @@
 """One scan of the daemon: capture -> audit -> reconstruct + detect -> alarms -> publish.
 
+The pipeline publishes through a `telemetry.publisher.Publisher`: the daemon's MQTT
+`Telemetry`, or in tests a `MemoryPublisher`.
+
 Each stage is timed; a stage that fails is reported (log, `P/scan` with the reason, status,
 metrics) and the scan ends there, the agent carries on. Stage boundaries check the scan's
 deadline and whether the agent gave up on it (shutdown, deadline), so an abandoned scan never
@@ -28,8 +31,8 @@ from silo_agent.reconstruct import Reconstruction
 from silo_agent.scan import gravity_angles
 from silo_agent.service.scan_once import Stages, scan_once
 from silo_agent.storage.audit import AuditCache, dump_json
-from silo_agent.telemetry.client import Telemetry
 from silo_agent.telemetry.prometheus import Metrics
+from silo_agent.telemetry.publisher import Publisher
 
 log = structlog.get_logger(__name__)
 
@@ -54,10 +57,10 @@ class Pipeline:
     """Runs scans for the agent; holds what carries from scan to scan (alarm state, piles)."""
 
     def __init__(
-        self, config: Config, telemetry: Telemetry, cache: AuditCache, metrics: Metrics
+        self, config: Config, publisher: Publisher, cache: AuditCache, metrics: Metrics
     ) -> None:
         self.config = config
-        self.telemetry = telemetry
+        self.publisher = publisher
         self.cache = cache
         self.metrics = metrics
         self.state_path = cache.directory / STATE_FILE
@@ -174,7 +177,7 @@ class Pipeline:
         cameras.update({f.serial: ("failed", f.error) for f in capture.failures})
         for serial, (camera_state, _error) in cameras.items():
             self.metrics.camera_up.labels(serial).set(1 if camera_state == "ok" else 0)
-        self.telemetry.set_status(cameras=cameras)
+        self.publisher.set_status(cameras=cameras)
         for failure in capture.failures:
             log.warning(
                 "camera failed", scan_id=scan_id, serial=failure.serial, error=failure.error
@@ -198,9 +201,9 @@ class Pipeline:
         events, self.state = evaluate(self.state, inputs, self.config.alarms)
         self._save_state()
         try:
-            self.telemetry.publish_scan_failure(summary)
+            self.publisher.publish_scan_failure(summary)
             for event in events:
-                self.telemetry.publish_alarm(event)
+                self.publisher.publish_alarm(event)
         except Exception:
             log.exception("cannot queue the failure report", scan_id=scan_id)
         self._count("failed", summary)
@@ -210,16 +213,16 @@ class Pipeline:
     def _publish(
         self, summary: ScanSummary, result: Reconstruction, events: list[AlarmEvent]
     ) -> None:
-        self.telemetry.publish_result(summary, result.heightmap)
+        self.publisher.publish_result(summary, result.heightmap)
         for event in events:
-            self.telemetry.publish_alarm(event)
+            self.publisher.publish_alarm(event)
             details = {k: v for k, v in event.to_json().items() if k != "message"}
             log.warning("alarm", **details, text=event.message)
 
     def _count(self, outcome: str, summary: ScanSummary) -> None:
         self.metrics.scans.labels(outcome).inc()
         self.metrics.record_result(summary, failed=outcome == "failed")
-        self.metrics.set_alarms(self.telemetry.raised_alarms())
+        self.metrics.set_alarms(self.publisher.raised_alarms())
 
     def clear_switched_off_alarms(self) -> None:
         """At start and after a reload: clear, with the usual `cleared` event, every raised
@@ -229,10 +232,10 @@ class Pipeline:
             return
         self._save_state()
         for event in events:
-            self.telemetry.publish_alarm(event)
+            self.publisher.publish_alarm(event)
             log.info(
                 "alarm cleared, its detector is switched off",
                 type=event.type,
                 reason=event.message,
             )
-        self.metrics.set_alarms(self.telemetry.raised_alarms())
+        self.metrics.set_alarms(self.publisher.raised_alarms())
