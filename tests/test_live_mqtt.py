@@ -6,6 +6,8 @@ live session that resumes after it."""
 from __future__ import annotations
 
 import itertools
+import json
+import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -74,6 +76,13 @@ class Listener:
             assert time.monotonic() < end, f"timed out; got {[m.topic for m in self.messages]}"
             time.sleep(0.05)
 
+    def statuses(self) -> list[str]:
+        return [json.loads(m.payload)["state"] for m in self.on(f"{BASE}/status")]
+
+    def online(self) -> None:
+        """Until the agent says `online`: it subscribed to its commands before."""
+        self.wait(lambda: "online" in self.statuses())
+
     def command(self, body: bytes) -> bytes:
         correlation = f"live-{next(counter)}".encode()
         props = Properties(PacketTypes.PUBLISH)
@@ -132,6 +141,7 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
     agent = Daemon(config, tmp_path)
     try:
         agent.wait_log("agent started")
+        listener.online()
         # limits of [live] answer with an error naming them, nothing starts
         listener.command(b'{"on": true, "rate_hz": 5}')
         (too_fast,) = listener.replies(1)
@@ -168,8 +178,6 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
         assert min(b - a for a, b in itertools.pairwise(times)) >= 2.0 - 0.02  # captures
         arrivals = [m.at for m in maps]
         assert min(b - a for a, b in itertools.pairwise(arrivals)) >= 2.0 - 0.1  # and sends
-        time.sleep(2.5)
-        assert len(listener.on(LIVE)) == len(maps)  # it has stopped
         # the retained full-scan topic is untouched by live maps
         assert not listener.on(f"{BASE}/heightmap")
 
@@ -177,12 +185,17 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
         listener.command(b'{"on": true, "duration_s": 60}')
         second = listener.replies(7)[6]["scan_id"]
         listener.wait(lambda: len(listener.on(LIVE)) >= len(maps) + 2, timeout=40)
+        # the first session had stopped: every map after its last is the second session's
+        later = [decode_live_heightmap(m.payload) for m in listener.on(LIVE)[len(maps) :]]
+        assert {d.session_id for d in later} == {second}
         listener.command(b'{"on": false}')
         replies = listener.replies(9)
         assert {r["status"] for r in replies[7:9]} == {"accepted", "done"}
         assert all(r["scan_id"] == second for r in replies[7:9])
         count = len(listener.on(LIVE))
-        time.sleep(1.5)
+        agent.signal(signal.SIGTERM)  # `stopped` comes after every map the agent sent
+        assert agent.wait(20) == 0
+        listener.wait(lambda: "stopped" in listener.statuses())
         assert len(listener.on(LIVE)) <= count + 1  # at most the map being made
     finally:
         agent.kill()
@@ -199,6 +212,7 @@ def test_a_full_scan_pre_empts_live_and_live_resumes(tmp_path: Path, broker, lis
     agent = Daemon(config, tmp_path)
     try:
         agent.wait_log("agent started")
+        listener.online()
         listener.command(b'{"on": true, "rate_hz": 2, "duration_s": 60}')
         (accepted,) = listener.replies(1)
         assert accepted["status"] == "accepted"

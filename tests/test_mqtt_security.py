@@ -52,7 +52,10 @@ def test_wrong_password_is_reported_and_retried_with_back_off(
                 reconnect_min_s=0.1,
                 reconnect_max_s=0.8,
             )
-            time.sleep(1.6)
+            end = time.monotonic() + 15
+            while sum(e["event"] == "MQTT connection failed, retrying" for e in logs) < 3:
+                assert time.monotonic() < end, "fewer than 3 attempts in 15 s"
+                time.sleep(0.02)
             tel.stop()
         failures = [e for e in logs if e["event"] == "MQTT connection failed, retrying"]
         assert len(failures) >= 3

@@ -25,6 +25,13 @@ def metric_map(payload) -> dict[str, ps.Metric]:
     return {m.name: m for m in payload.metrics}
 
 
+def wait_until(check, timeout: float = 15) -> None:
+    end = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
 def failed_attempts(logs: list[dict]) -> int:
     return sum(
         e["event"] == "MQTT connection failed, retrying" and e["link"] == "sparkplug" for e in logs
@@ -174,8 +181,7 @@ def test_bd_seq_goes_up_once_per_session_not_per_connection_attempt(
     try:
         with capture_logs() as logs:
             tel = telemetry_factory(broker, sparkplug={"enabled": True})
-            time.sleep(1.5)  # back-off 0.1, 0.2, 0.4, 0.5 s: four or five attempts fail
-        assert failed_attempts(logs) >= 3
+            wait_until(lambda: failed_attempts(logs) >= 3)  # back-off 0.1, 0.2, 0.4, 0.5 s
         broker.start()
         col = collector_factory(broker, ["spBv1.0/#"])
         col.publish(NODE.format("NCMD"), rebirth_request())  # the NBIRTH may precede `col`
@@ -185,8 +191,7 @@ def test_bd_seq_goes_up_once_per_session_not_per_connection_attempt(
         # an outage while running: the session ends, the attempts while the broker is down fail
         with capture_logs() as logs:
             broker.stop()
-            time.sleep(1.5)
-            assert failed_attempts(logs) >= 3
+            wait_until(lambda: failed_attempts(logs) >= 3)
             broker.start()
             spb_link = tel._links[1]
             end = time.monotonic() + 15
@@ -221,14 +226,16 @@ def test_replayed_data_carries_only_what_the_birth_declared(
     old.set_status(cameras={"cam-c": ("failed", "timeout")})  # only the removed camera
     old.publish_result(summary())
     old.stop()  # never connected: the three NDATA stay in the outbox
-    telemetry_factory(broker, cameras=("cam-a", "cam-b"), sparkplug={"enabled": True})
+    new = telemetry_factory(broker, cameras=("cam-a", "cam-b"), sparkplug={"enabled": True})
     col.wait_topic(NODE.format("NDATA"), 2)
-    time.sleep(0.3)  # a third NDATA would be the one holding only cam-c
+    new.set_status(cameras={"cam-b": ("failed", "timeout")})  # one more NDATA: a barrier
+    col.wait_topic(NODE.format("NDATA"), 3)  # had cam-c's gone out, this would be the 4th
     (birth,) = births(col)
     declared = set(metric_map(birth))
     assert "Cameras/cam-c/State" not in declared
-    data = [ps.NData.decode(m.payload) for m in col.on(NODE.format("NDATA"))]
+    *data, barrier = [ps.NData.decode(m.payload) for m in col.on(NODE.format("NDATA"))]
     assert [d.seq for d in data] == [1, 2]
+    assert {m.name: m.value for m in barrier.metrics} == {"Cameras/cam-b/State": "failed"}
     assert all(m.name in declared and m.is_historical for d in data for m in d.metrics)
     assert {m.name: m.value for m in data[0].metrics} == {"Cameras/cam-a/State": "ok"}
     assert metric_map(data[1])["Inventory/Volume m3"].value == 12.345

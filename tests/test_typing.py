@@ -5,41 +5,58 @@ module protoc generated is checked through the stub protoc made from the same sc
 from __future__ import annotations
 
 import re
+import subprocess
 import tomllib
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 UNTYPED_LIBRARIES = {"pyrealsense2", "onnxruntime", "apscheduler"}  # no inline types, no stubs
 
 
-def _recipe(makefile: str, target: str) -> list[str]:
-    """The command lines of one Makefile target."""
-    lines = makefile.splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith(f"{target}:"))
-    recipe = []
-    for line in lines[start + 1 :]:
-        if not line.startswith("\t"):
-            break
-        recipe.append(line.strip())
-    return recipe
+def _make_test(tmp_path: Path, failing: str | None = None) -> tuple[int, list[str]]:
+    """`make test` with stand-ins for the venv's tools that log how they were called;
+    `failing` (ruff, mypy or python) exits 1. Returns make's status and the calls in order."""
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    calls = tmp_path / "calls"
+    for tool in ("ruff", "mypy", "python"):
+        script = venv / "bin" / tool
+        status = 1 if tool == failing else 0
+        script.write_text(f'#!/bin/sh\necho "{tool} $*" >> {calls}\nexit {status}\n')
+        script.chmod(0o755)
+    stamp = venv / ".installed"
+    stamp.touch()
+    run = subprocess.run(
+        ["make", "-s", "-C", str(ROOT), "test", f"VENV={venv}", f"STAMP={stamp}"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    logged = [c.strip() for c in calls.read_text().splitlines()] if calls.exists() else []
+    return run.returncode, logged
 
 
-def test_make_test_runs_mypy_before_the_suite() -> None:
-    recipe = _recipe((ROOT / "Makefile").read_text(encoding="utf-8"), "test")
-    mypy = [i for i, line in enumerate(recipe) if line.split()[0].endswith("/mypy")]
-    pytest = [i for i, line in enumerate(recipe) if "pytest" in line]
-    assert mypy and pytest, recipe
-    assert mypy[0] < pytest[0], "a type error must stop make test before the suite runs"
+def test_make_test_runs_lint_format_and_types_before_the_suite(tmp_path: Path) -> None:
+    status, calls = _make_test(tmp_path)
+    assert status == 0
+    assert calls == [
+        "ruff check silo_agent tests bench",
+        "ruff format --check silo_agent tests bench",
+        "mypy",
+        "python -m pytest -q",
+    ]
 
 
-def test_make_test_checks_the_format_before_the_suite() -> None:
-    recipe = _recipe((ROOT / "Makefile").read_text(encoding="utf-8"), "test")
-    check = [i for i, line in enumerate(recipe) if "ruff format --check" in line]
-    pytest = [i for i, line in enumerate(recipe) if "pytest" in line]
-    assert check and pytest, recipe
-    assert check[0] < pytest[0]
-    for tree in ("silo_agent", "tests", "bench"):
-        assert tree in recipe[check[0]].split()
+@pytest.mark.parametrize("failing", ["ruff", "mypy"])
+def test_a_lint_format_or_type_error_stops_make_test_before_the_suite(
+    tmp_path: Path, failing: str
+) -> None:
+    status, calls = _make_test(tmp_path, failing)
+    assert status != 0
+    assert calls and calls[-1].startswith(failing)
+    assert not any(c.startswith("python") for c in calls)
 
 
 def test_mypy_checks_the_package_and_silences_only_untyped_libraries() -> None:

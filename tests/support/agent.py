@@ -137,6 +137,10 @@ class Daemon:
                 out.append({"event": line})
         return out
 
+    def log_of(self, event: str) -> list[dict]:
+        """The log entries of one event so far."""
+        return [e for e in self.log() if e.get("event") == event]
+
     def wait_log(self, event: str, count: int = 1, timeout: float = 30) -> list[dict]:
         end = time.monotonic() + timeout
         while time.monotonic() < end:
@@ -173,6 +177,13 @@ class NotifySocket:
         self._stop.set()
         self._thread.join()
         self.sock.close()
+
+    def wait_for(self, message: str, count: int = 1, timeout: float = 30) -> None:
+        """Until `message` has come `count` times."""
+        end = time.monotonic() + timeout
+        while sum(m == message for _, m in self.messages) < count:
+            assert time.monotonic() < end, f"no {count} x {message!r}: {self.messages}"
+            time.sleep(0.05)
 
     def fields(self) -> list[str]:
         return [f for _, m in self.messages for f in m.split("\n")]

@@ -112,6 +112,13 @@ class Broker:
                 time.sleep(0.05)
         raise RuntimeError("mosquitto did not start")
 
+    def wait_saved(self, timeout: float = 10) -> None:
+        """Until mosquitto wrote its persistence file (it saves on every change)."""
+        end = time.monotonic() + timeout
+        while not (self.dir / "mosquitto.db").exists():
+            assert time.monotonic() < end, f"mosquitto saved nothing in {self.dir}"
+            time.sleep(0.02)
+
     def kill(self) -> None:
         """SIGKILL: no goodbye to anyone."""
         if self.proc and self.proc.poll() is None:
