@@ -360,6 +360,26 @@ def evaluate(
     With `calibration`, the `calibration` alarm follows the calibration_drift detector
     (silo_agent.analysis.drift.drift_step, whose run lengths the state carries): raised while any
     camera pair's height disagreement or camera's IMU tilt is drifted, cleared when none is.
+
+    Parameters
+    ----------
+    state : AlarmState
+        The active alarms, the collapse baseline and the last volume, from the last scan.
+    inputs : Inputs
+        What the alarms see of this scan.
+    cfg : AlarmsConfig
+        Thresholds, hysteresis and which detectors are on.
+    detectors : mapping of str to Detector, optional
+        Alarm type -> detector; default `DETECTORS`.
+    calibration : CalibrationConfig, optional
+        Drift thresholds; None leaves the `calibration` alarm as it is.
+
+    Returns
+    -------
+    events : list of AlarmEvent
+        The changes, in order: clears of switched-off detectors first.
+    state : AlarmState
+        The state to pass to the next scan's evaluation.
     """
     detectors = DETECTORS if detectors is None else detectors
     if inputs.previous_volume_m3 is None:

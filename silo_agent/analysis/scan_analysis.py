@@ -61,6 +61,31 @@ def analyse(
 
     `calibration` sets how the registration residual is measured; with `refine` on, a bounded
     registration of the overlaps adjusts the scan's extrinsics first (silo_agent.calibrate).
+
+    Parameters
+    ----------
+    scan : Scan
+        The scan to analyse.
+    settings : ReconstructionConfig
+        How to reconstruct (see `reconstruct.reconstruct`).
+    detection : DetectionConfig
+        The geometric detector's settings and the YOLO model, if any.
+    site : Site, optional
+        Default the scan's own.
+    previous : sequence of Pile
+        The previous scan's piles: a pile that stayed in place keeps its id.
+    calibration : CalibrationConfig, optional
+        Residual thresholds and `refine`.
+
+    Returns
+    -------
+    ScanAnalysis
+        The reconstruction, the piles of both detectors and the robots (None without a model).
+
+    Raises
+    ------
+    ModelError
+        The configured ONNX model cannot be used.
     """
     site = site or scan.site
     found: list[Located] = []

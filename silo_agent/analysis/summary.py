@@ -121,8 +121,24 @@ def summarise(
     failed: Sequence[FailedCamera],
     timings: Mapping[str, float],
 ) -> ScanSummary:
-    """The summary of a scan's analysis, or of a scan without a result. Timings are rounded
-    to 0.1 ms."""
+    """The summary of a scan's analysis, or of a scan without a result.
+
+    Parameters
+    ----------
+    outcome : ScanAnalysis or NoResult
+        What the scan's analysis found, or why there is none.
+    captured_at : str
+        The scan's capture time, RFC 3339 UTC.
+    failed : sequence of FailedCamera
+        The cameras that failed during the capture (the summary is then `degraded`).
+    timings : mapping of str to float
+        The scan's stage durations, seconds (`capture_s`, ...); rounded to 0.1 ms.
+
+    Returns
+    -------
+    ScanSummary
+        What every output publishes.
+    """
     rounded = {k: round(v, 4) for k, v in timings.items()}
     if isinstance(outcome, NoResult):
         return ScanSummary(

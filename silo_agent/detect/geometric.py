@@ -142,8 +142,8 @@ def _basin_peaks(
     """Each basin's (1..count) highest value and the (row, col) of that cell (of several
     equal highest cells, the first in row-major order). `values` is finite where labels > 0.
 
-    A scatter-maximum over the cells and one comparison, where a sort of all the values
-    (what `ndimage.maximum_position` does) would be most of detection's cost.
+    A scatter-maximum over the cells and one comparison, not a sort of all the values (what
+    `ndimage.maximum_position` does; docs/development.md, performance notes).
     """
     peaks = _highest(values, labels, count)
     flat_labels = labels.ravel()
@@ -254,7 +254,20 @@ class Surface:
 
 def detect_piles(surface: Surface, settings: DetectionConfig) -> list[Pile]:
     """Piles of a reconstructed height map, largest volume first, ids 1..n (see
-    `piles.match_ids` for ids that last between scans)."""
+    `piles.match_ids` for ids that last between scans).
+
+    Parameters
+    ----------
+    surface : Surface
+        The height map above its base, smoothed and coarse (`Surface.of`).
+    settings : DetectionConfig
+        Prominence, footprint and volume a pile needs.
+
+    Returns
+    -------
+    list of Pile
+        The geometric detector's piles; empty when nothing stands `EDGE_M` above the base.
+    """
     smooth = surface.smooth
     domain = np.isfinite(smooth) & (smooth > EDGE_M)
     if not np.any(domain):

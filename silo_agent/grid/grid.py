@@ -47,8 +47,8 @@ class Grid:
 
 @functools.lru_cache(maxsize=16)
 def _grid_over(region_bytes: bytes, region_shape: tuple[int, ...], step: float) -> Grid:
-    """Cutting the region's boundary cells is ~15 ms at 1 cm; a daemon asks for the same grid
-    every scan. The shared `inside` is read-only."""
+    """`Grid.over`, cached: a daemon asks for the same grid every scan (docs/development.md,
+    performance notes). The shared `inside` is read-only."""
     region = np.frombuffer(region_bytes).reshape(region_shape)
     low = region.min(axis=0)
     rows, cols = grid_shape(region, step)

@@ -31,7 +31,29 @@ def base_plane(
     grid: Grid, heights: np.ndarray, base: str, floor_z: float
 ) -> tuple[float, float, float]:
     """(a, b, c) of the base under the grain, z = a*x + b*y + c: the floor, or a plane fitted
-    along the boundary. Published in the height map so a robot measures from the same base."""
+    along the boundary. Published in the height map so a robot measures from the same base.
+
+    Parameters
+    ----------
+    grid : Grid
+        The grid over the region (`inside` marks the region's cells).
+    heights : ndarray, shape grid.shape
+        Filled surface heights, silo frame; NaN where unknown.
+    base : {"floor", "boundary"}
+        The flat floor at `floor_z`, or the least-squares plane through the boundary cells.
+    floor_z : float
+        Silo-frame z of the floor.
+
+    Returns
+    -------
+    tuple of float
+        (a, b, c).
+
+    Raises
+    ------
+    ValueError
+        `base = "boundary"` with fewer than 3 boundary cells that have a height.
+    """
     if base == "floor":
         return 0.0, 0.0, float(floor_z)
     ring = boundary_cells(grid.inside) & np.isfinite(heights)
@@ -44,7 +66,18 @@ def base_plane(
 
 
 def base_surface(grid: Grid, heights: np.ndarray, base: str, floor_z: float) -> np.ndarray:
-    """Height of the base under every cell (`base_plane` evaluated at the cell centres)."""
+    """Height of the base under every cell (`base_plane` evaluated at the cell centres).
+
+    Parameters
+    ----------
+    grid, heights, base, floor_z
+        As for `base_plane`.
+
+    Returns
+    -------
+    ndarray, shape grid.shape
+        Silo-frame z of the base at each cell centre.
+    """
     if base == "floor":
         return np.full(grid.shape, floor_z)
     a, b, c = base_plane(grid, heights, base, floor_z)
@@ -53,14 +86,42 @@ def base_surface(grid: Grid, heights: np.ndarray, base: str, floor_z: float) -> 
 
 
 def integrate(grid: Grid, heights: np.ndarray, base: np.ndarray) -> float:
-    """Sum over cells of max(height - base, 0) x cell area x fraction of the cell inside."""
+    """Sum over cells of max(height - base, 0) x cell area x fraction of the cell inside.
+
+    Parameters
+    ----------
+    grid : Grid
+        The grid; `inside` weighs the region's cut cells.
+    heights : ndarray, shape grid.shape
+        Surface heights; NaN cells count nothing.
+    base : ndarray, shape grid.shape
+        Height of the base under each cell (`base_surface`).
+
+    Returns
+    -------
+    float
+        Volume in cubic metres.
+    """
     above = np.where(np.isfinite(heights), np.maximum(heights - base, 0.0), 0.0)
     return float(np.sum(above * grid.inside) * grid.cell_area)
 
 
 def integrate_counted(grid: Grid, counted: np.ndarray) -> float:
     """The volume: the heights the volume counts (`counted_heights`), weighted by the fraction
-    of each cell inside the region, times the cell area."""
+    of each cell inside the region, times the cell area.
+
+    Parameters
+    ----------
+    grid : Grid
+        The grid the heights are on.
+    counted : ndarray, shape grid.shape
+        `counted_heights`; NaN cells count nothing.
+
+    Returns
+    -------
+    float
+        Volume in cubic metres.
+    """
     return float(np.sum(counted_columns(grid, counted)) * grid.cell_area)
 
 
@@ -89,6 +150,23 @@ def counted_heights(
     (about Gaussian, `scale_m`) and the detail; only the smooth part is clipped, the detail is
     summed signed: counted = max(smooth, 0) + (height - base - smooth). Real areas below the
     base survive smoothing and are still excluded; noise cancels.
+
+    Parameters
+    ----------
+    grid : Grid
+        The grid over the region.
+    heights : ndarray, shape grid.shape
+        Filled surface heights, silo frame; NaN where unknown.
+    base : ndarray, shape grid.shape
+        Height of the base under each cell (`base_surface`).
+    scale_m : float
+        Scale of the smooth part (the smoothing's sigma, metres; at least one cell).
+
+    Returns
+    -------
+    ndarray, shape grid.shape
+        Counted height per cell (may be negative in a cell); NaN outside the region or
+        where `heights` is NaN.
     """
     region = (grid.inside > 0) & np.isfinite(heights)
     relative = np.where(region, heights - base, 0.0)
@@ -99,7 +177,20 @@ def counted_heights(
 
 
 def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:
-    """Min, area-weighted mean and max of the surface over the region."""
+    """Min, area-weighted mean and max of the surface over the region.
+
+    Parameters
+    ----------
+    grid : Grid
+        The grid; `inside` weighs the mean.
+    heights : ndarray, shape grid.shape
+        Surface heights; at least one finite cell inside the region.
+
+    Returns
+    -------
+    Levels
+        Silo-frame z (not above the floor).
+    """
     region = (grid.inside > 0) & np.isfinite(heights)
     values = heights[region]
     weights = grid.inside[region]

@@ -1,7 +1,8 @@
 """BICM reconstruction: scan -> height map -> volume, mass, levels, coverage. Pure: no I/O.
 
-fuse + crop -> voxel down-sample -> clustered means per cell -> B-spline fill of empty cells
--> slope correction -> integration over the region (cut cells weighted).
+fuse + crop -> voxel down-sample (optional) -> clustered means per cell -> fill of empty cells
+(`reconstruction.fill`: the membrane by default, the paper's B-spline on request) -> slope
+correction -> integration over the region (cut cells weighted).
 """
 
 from __future__ import annotations
@@ -178,6 +179,31 @@ def reconstruct(
     `exclude` lists silo-frame discs (x, y, radius) whose points are not grain (a leveling
     robot found by the detector): they are dropped after fusing and the fill covers the hole.
     `calibration` sets how the cameras' height disagreement is measured (reconstruct/residual).
+
+    Parameters
+    ----------
+    scan : Scan
+        The cameras' clouds, their extrinsics and the scan's own site.
+    settings : ReconstructionConfig
+        Method (`bicm` or a baseline), grid step, fill, clustering.
+    site : Site, optional
+        Region, floor, base and bulk density; default the scan's.
+    exclude : sequence of (x, y, radius)
+        Silo-frame discs whose points are dropped.
+    calibration : CalibrationConfig, optional
+        Residual thresholds; default `CalibrationConfig()`.
+
+    Returns
+    -------
+    Reconstruction
+        Volume, mass, coverage, levels, the height map, validity with its reason, stage
+        timings and the camera pairs' residuals. An empty region is an invalid result, not an
+        error.
+
+    Raises
+    ------
+    LimitExceeded
+        The region at this grid step is past the grid's cell limit.
     """
     site = site or scan.site
     clock = _Clock()

@@ -62,9 +62,8 @@ def _run_starts(values: np.ndarray) -> np.ndarray:
 
 def _sorts_with_simd() -> bool:
     """Whether numpy sorts int64 with SIMD kernels on this CPU (numpy >= 2.0: x86-simd-sort on
-    AVX2 and AVX-512, Highway's VQSort on ARM). There a sort of the whole key is about 5x
-    faster than `_radix_sorted` on a million keys; an SSE-only x86 (some Atom and Celeron
-    gateways) falls back to introsort, about 2x slower than it."""
+    AVX2 and AVX-512, Highway's VQSort on ARM): then one sort of the whole key, else
+    `_radix_sorted` (which is faster where, docs/development.md, performance notes)."""
     try:  # what numpy.show_runtime() reads; it has no stub
         features = importlib.import_module("numpy._core._multiarray_umath").__cpu_features__
     except (ImportError, AttributeError):  # numpy 1.x
