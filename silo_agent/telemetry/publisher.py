@@ -67,7 +67,7 @@ class MemoryPublisher:
     cameras: CameraStates = field(default_factory=dict)
     last_scan_id: str | None = None
     alarm_states: dict[str, AlarmEvent] = field(default_factory=dict)  # type -> latest event
-    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     def publish_result(self, summary: ScanSummary, heightmap: HeightMap | None = None) -> None:
         check_summary(summary)
