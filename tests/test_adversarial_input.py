@@ -196,6 +196,12 @@ def test_non_utf8_config_on_sighup_is_rejected_and_the_daemon_goes_on(
     agent = Daemon(config, tmp_path)
     try:
         agent.wait_log("agent started")
+        col.wait_for(  # `online` comes after the agent subscribed: the request below is not lost
+            lambda ms: any(
+                m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online"
+                for m in ms
+            )
+        )
         config.write_bytes(config.read_bytes() + b"\n# caf\xe9 latin-1\n")
         agent.signal(signal.SIGHUP)
         (rejected,) = agent.wait_log("config reload rejected, keeping the running config")

@@ -426,7 +426,7 @@ def test_deadline_abandons_a_stuck_scan_and_sigterm_bounds_a_running_one(
     col = collector_factory(broker, [f"{BASE}/#", REPLIES])
     agent = Daemon(config, tmp_path)
     try:
-        agent.wait_log("agent started")
+        _status(col, "online")  # subscribed: the request is not lost
         first = request(col, b'{"request_id": "slow"}')
         accepted, failed = replies(col, first, 2)
         assert accepted["status"] == "accepted"
