@@ -26,9 +26,18 @@ from silo_agent.base.choices import (
     GRAINS,
     LAYOUTS,
     METHODS,
+    SCENE_NAMES,
 )
 from silo_agent.base.exits import CONFIG_ERROR, DATA_ERROR, INTERRUPTED
-from silo_agent.cli.common import calib_error, configure_logging, fail, positive, seconds, views
+from silo_agent.cli.common import (
+    calib_error,
+    configure_logging,
+    fail,
+    positive,
+    resolution,
+    seconds,
+    views,
+)
 
 Handler = Callable[[argparse.Namespace], int]
 PROCESS = "process:process"  # the handler of `process`, which exits without tearing down
@@ -172,8 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="render a simulated scene into a silo-scan/1 directory")
     p.add_argument(
         "--scene",
-        required=True,  # sim.SCENES, not imported: no numpy at start-up
-        choices=["cone", "piles", "ridge", "crater", "full", "flat", "empty", "bay-cone"],
+        required=True,
+        choices=SCENE_NAMES,
     )
     p.add_argument(
         "--views",
@@ -202,7 +211,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--layout",
         choices=LAYOUTS,
-        help="paper: 5 m square, 1 m high; wall: high on the walls (default per scene)",
+        help="paper: 5 m square, 1 m high; wall: high on the walls; eave: under a round "
+        "bin's eave (default per scene)",
+    )
+    p.add_argument(
+        "--resolution",
+        type=resolution,
+        default=(848, 480),
+        metavar="WxH",
+        help="depth image size: 848x480 (default) or the D455's full 1280x720",
     )
     p.add_argument("--color", action="store_true", help="colour the points (normal shading)")
     p.add_argument(

@@ -75,3 +75,14 @@ def calib_error(text: str) -> tuple[float, float]:
     if degrees < 0 or metres < 0:
         raise argparse.ArgumentTypeError("DEG and M must be >= 0")
     return degrees, metres
+
+
+def resolution(text: str) -> tuple[int, int]:
+    """`WIDTHxHEIGHT` of a simulated depth image."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError("want WIDTHxHEIGHT, e.g. 1280x720") from None
+    if not (16 <= width <= 1280 and 16 <= height <= 800):
+        raise argparse.ArgumentTypeError("want 16-1280 x 16-800 pixels")
+    return width, height

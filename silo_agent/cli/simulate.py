@@ -25,6 +25,7 @@ def simulate(args: argparse.Namespace) -> int:
             layout=args.layout,
             color=args.color,
             rig=rig,
+            resolution=args.resolution,
         )
     except ValueError as exc:  # a layout that does not fit the scene
         return fail(str(exc), USAGE)
@@ -40,7 +41,9 @@ def simulate(args: argparse.Namespace) -> int:
     if args.record is not None:
         from silo_agent.capture.sim_recording import record_views  # pyrealsense2: only here
 
-        views = plan_views(scene, args.views, args.seed, args.calib_error, args.layout)
+        views = plan_views(
+            scene, args.views, args.seed, args.calib_error, args.layout, args.resolution
+        )
         for path in record_views(
             rig, views, args.seed, args.record, args.record_frames, args.color
         ):
