@@ -174,6 +174,53 @@ def _boundary_band(
     return band
 
 
+def _band_fractions(
+    polygon: np.ndarray,
+    origin: tuple[float, float],
+    step: float,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    supersample: int,
+) -> np.ndarray:
+    """Share of each listed cell's supersample^2 points inside `polygon`, by the even-odd rule
+    on the points' horizontal lines: each line is cut by the edges once (a loop over edges, each
+    cutting a contiguous run of the sorted lines), and a point is inside where an odd number of
+    cuts lie right of it. The same comparisons as `points_in_polygon` on every point, at
+    O(lines x cuts + points) instead of O(points x edges): a round region's 256 edges made
+    that 0.64 s for the boundary band of a 12 m silo at 1 cm."""
+    offsets = ((np.arange(supersample) + 0.5) / supersample - 0.5) * step
+    band_rows, row_of_cell = np.unique(rows, return_inverse=True)
+    centre_y = origin[1] + (band_rows + 0.5) * step
+    line_y = (centre_y[:, None] + offsets[None, :]).ravel()  # ascending: rows, then offsets
+    x0, y0 = polygon[:, 0], polygon[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    cut_line, cut_x = [], []
+    for ax, ay, bx, by in zip(x0, y0, x1, y1, strict=True):
+        if ay == by:
+            continue
+        # lines with (ay > y) != (by > y): y in [min, max) of the edge's ends
+        first = np.searchsorted(line_y, min(ay, by), side="left")
+        last = np.searchsorted(line_y, max(ay, by), side="left")
+        y = line_y[first:last]
+        cut_line.append(np.arange(first, last))
+        cut_x.append(ax + (y - ay) * (bx - ax) / (by - ay))
+    line = np.concatenate(cut_line)
+    x_cut = np.concatenate(cut_x)
+    per_line = np.bincount(line, minlength=len(line_y))
+    # the cuts as a table, one row per line, padded with -inf (never right of a point)
+    order = np.argsort(line, kind="stable")
+    slot = np.arange(len(line)) - np.repeat(np.cumsum(per_line) - per_line, per_line)
+    table = np.full((len(line_y), max(1, int(per_line.max()))), -np.inf)
+    table[line[order], slot] = x_cut[order]
+    centre_x = origin[0] + (cols + 0.5) * step
+    point_x = centre_x[:, None] + offsets[None, :]  # (cells, supersample) along x
+    lines_of_cell = row_of_cell[:, None] * supersample + np.arange(supersample)[None, :]
+    right = np.zeros((len(rows), supersample, supersample), dtype=np.int64)
+    for k in range(table.shape[1]):
+        right += point_x[:, None, :] < table[lines_of_cell, k][:, :, None]
+    return ((right % 2) == 1).mean(axis=(1, 2))
+
+
 def cell_fractions(
     polygon: np.ndarray,
     origin: tuple[float, float],
@@ -190,13 +237,7 @@ def cell_fractions(
     band = _boundary_band(polygon, origin, step, shape)
     if np.any(band):
         rows, cols = np.nonzero(band)
-        cx = origin[0] + (cols + 0.5) * step
-        cy = origin[1] + (rows + 0.5) * step
-        offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-        ox, oy = np.meshgrid(offsets * step, offsets * step)
-        sx = cx[:, None] + ox.ravel()[None, :]
-        sy = cy[:, None] + oy.ravel()[None, :]
-        fraction[band] = points_in_polygon(sx, sy, polygon).mean(axis=1)
+        fraction[band] = _band_fractions(polygon, origin, step, rows, cols, supersample)
     return fraction
 
 

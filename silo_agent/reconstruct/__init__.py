@@ -163,8 +163,7 @@ def _excluding(fused: FusedCloud, discs: Sequence[tuple[float, float, float]]) -
     """`fused` without the points inside any of the (x, y, radius) discs."""
     keep = points_outside(fused.points, discs)
     points, camera, cell = fused.points[keep], fused.camera[keep], fused.cell[keep]
-    n_cams, n_cells = fused.moments.count.shape
-    moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
+    moments = CellMoments.of(points, camera, cell, fused.moments.n_cells, fused.moments.n_cams)
     return FusedCloud(points, camera, cell, fused.raw_count, moments)
 
 
@@ -236,8 +235,7 @@ def reconstruct(
         points, camera = voxel_downsample(points, camera, settings.voxel_size_m)
         row, col = grid.cell_index(points[:, 0], points[:, 1])
         cell = row * grid.shape[1] + col
-        n_cams, n_cells = moments.count.shape
-        moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
+        moments = CellMoments.of(points, camera, cell, moments.n_cells, moments.n_cams)
         clock.lap("voxel_downsample")
     cells = clustered_means(
         points,

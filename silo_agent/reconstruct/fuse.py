@@ -11,47 +11,111 @@ from silo_agent.grid.grid import Grid
 from silo_agent.scan import CameraCloud, Site
 
 
+def run_starts(values: np.ndarray) -> np.ndarray:
+    """Start offsets of the runs of equal values in a sorted array.
+
+    A boolean mask of neighbour inequality: 7x faster than flatnonzero(diff(prepend=...)),
+    which copies the array to prepend and subtracts in int64.
+    """
+    starts = np.empty(len(values), dtype=bool)
+    starts[:1] = True
+    np.not_equal(values[1:], values[:-1], out=starts[1:])
+    return np.flatnonzero(starts)
+
+
+def _mask_dtype(n_cams: int) -> type[np.unsignedinteger]:
+    """The narrowest unsigned integer with a bit per camera (at most 64 in one word)."""
+    for dtype in (np.uint8, np.uint16, np.uint32):
+        if n_cams <= np.iinfo(dtype).bits:
+            return dtype
+    return np.uint64
+
+
+@dataclass(frozen=True)
+class CameraPairs:
+    """The (group, camera) pairs that occur among elements each in a group (a cell, a
+    cluster) and seen by a camera, numbered in (group, camera) order."""
+
+    of_element: np.ndarray  # (N,) int64: the pair each element belongs to
+    group: np.ndarray  # (pairs,) int64, ascending
+    camera: np.ndarray  # (pairs,) uint8, ascending within a group
+
+    @classmethod
+    def of(cls, group: np.ndarray, camera: np.ndarray, n_groups: int, n_cams: int) -> CameraPairs:
+        """No sort and nothing cameras x groups: each group gets a bitmask of the cameras in it
+        (one word per 64 cameras, the narrowest that holds them); a pair's number is the pairs
+        of the groups before plus the cameras set below its own bit. O(elements + groups)."""
+        words = -(-n_cams // 64)
+        dtype = _mask_dtype(min(n_cams, 64))
+        masks = np.zeros((words, n_groups), dtype=dtype)
+        camera = camera.astype(np.uint8, copy=False)
+        word, bit = np.divmod(camera, 64)
+        np.bitwise_or.at(masks, (word, group), np.left_shift(1, bit, dtype=dtype))
+        per_group = np.bitwise_count(masks).sum(axis=0, dtype=np.int64)
+        first = np.cumsum(per_group) - per_group  # number of a group's first pair
+        below = np.bitwise_count(masks[word, group] & (np.left_shift(1, bit, dtype=dtype) - 1))
+        of_element = first[group] + below
+        for lower in range(1, words):  # cameras of the words below, for cameras past 64
+            of_element += np.where(word >= lower, np.bitwise_count(masks[lower - 1, group]), 0)
+        n_pairs = int(per_group.sum())
+        pair_group = np.empty(n_pairs, np.int64)
+        pair_group[of_element] = group
+        pair_camera = np.empty(n_pairs, np.uint8)
+        pair_camera[of_element] = camera
+        return cls(of_element, pair_group, pair_camera)
+
+
 @dataclass(frozen=True)
 class CellMoments:
-    """Per (camera, cell): point count and sums of x, y, z and z^2; arrays (cameras, cells).
+    """Per (cell, camera) pair holding points: point count and sums of x, y, z and z^2.
 
     Computed once per scan while fusing and shared by the registration residual (per-camera
     means and spreads) and the clustered means (cell centroids, the noise that sets eps).
-    Camera-major, so that sums over cameras add whole rows (summing a short last axis is
-    several times slower), and filled one camera at a time: a bincount into one camera's row
-    stays in cache where one into all cameras' does not.
+    Sparse: only the pairs that occur, in (cell, camera) order, so the cost grows with the
+    points and the cells, not with cameras x cells (8 cameras at 1 cm over a 12 m silo held
+    five dense arrays of 8 x 1.44 M cells, 460 MB). The sums stay float64: the spread is
+    sum_zz / n - mean^2, a difference of two numbers ~ z^2 = 25 m^2 for a ~1e-6 m^2 variance,
+    which float32's 7 digits cannot carry.
     """
 
+    cell: np.ndarray  # (pairs,) int64 flat cell index, ascending
+    camera: np.ndarray  # (pairs,) uint8, ascending within a cell
     count: np.ndarray  # int64
     sum_x: np.ndarray  # float64, like the other sums
     sum_y: np.ndarray
     sum_z: np.ndarray
     sum_zz: np.ndarray
-
-    @classmethod
-    def zeros(cls, n_cams: int, n_cells: int) -> CellMoments:
-        count = np.zeros((n_cams, n_cells), dtype=np.int64)
-        return cls(count, *(np.zeros((n_cams, n_cells)) for _ in range(4)))
+    n_cells: int
+    n_cams: int
 
     @classmethod
     def of(
         cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int, n_cams: int
     ) -> CellMoments:
-        moments = cls.zeros(n_cams, n_cells)
-        for index in range(n_cams):
-            mine = camera == index
-            moments.set_camera(index, points[mine], cell[mine])
-        return moments
-
-    def set_camera(self, index: int, points: np.ndarray, cell: np.ndarray) -> None:
-        """Fill camera `index`'s row from its points and their cells."""
-        n_cells = self.count.shape[1]
+        """One pass over all points: each pair's sums add its points in their order, as a
+        bincount per camera would."""
+        pairs = CameraPairs.of(cell, camera, n_cells, n_cams)
+        index, n = pairs.of_element, len(pairs.group)
         z = points[:, 2].astype(np.float64)
-        self.count[index] = np.bincount(cell, None, n_cells)
-        self.sum_x[index] = np.bincount(cell, points[:, 0], n_cells)
-        self.sum_y[index] = np.bincount(cell, points[:, 1], n_cells)
-        self.sum_z[index] = np.bincount(cell, z, n_cells)
-        self.sum_zz[index] = np.bincount(cell, z * z, n_cells)
+        return cls(
+            pairs.group,
+            pairs.camera,
+            np.bincount(index, None, n),
+            np.bincount(index, points[:, 0], n),
+            np.bincount(index, points[:, 1], n),
+            np.bincount(index, z, n),
+            np.bincount(index, z * z, n),
+            n_cells,
+            n_cams,
+        )
+
+    def per_cell(self, values: np.ndarray) -> np.ndarray:
+        """`values` of the pairs summed over each cell's cameras, dense over all cells (0 where
+        none). A bincount adds them one after another in camera order, as the sum down the
+        cameras of a dense camera x cell array did, to the bit (a reduceat sums eight or more
+        values pairwise, which rounds differently)."""
+        total = np.bincount(self.cell, values, self.n_cells)
+        return total.astype(np.int64) if values.dtype.kind in "iu" else total
 
 
 @dataclass(frozen=True)
@@ -77,7 +141,6 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
     points = np.empty((total, 3), np.float32)
     camera_of = np.empty(total, np.uint8)
     cell = np.empty(total, np.int64)
-    moments = CellMoments.zeros(len(cameras), rows * cols)
     used = 0
     for index, camera in enumerate(cameras):
         silo = camera.points_in_silo()
@@ -92,6 +155,7 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
         np.take(silo, kept, axis=0, out=points[used:end])
         np.take(flat, kept, out=cell[used:end])
         camera_of[used:end] = index
-        moments.set_camera(index, points[used:end], cell[used:end])
         used = end
-    return FusedCloud(points[:used], camera_of[:used], cell[:used], total, moments)
+    points, camera_of, cell = points[:used], camera_of[:used], cell[:used]
+    moments = CellMoments.of(points, camera_of, cell, rows * cols, len(cameras))
+    return FusedCloud(points, camera_of, cell, total, moments)

@@ -9,11 +9,14 @@ camera's points spread over more than MAX_SPREAD_M in height, or where the surfa
 than MAX_SLOPE, are walls and edges, not a surface two cameras can agree on, and are left out
 (opposite wall cameras otherwise shared only wall cells and read 0.6 m of "disagreement").
 
-Pure numpy, one bincount per quantity, no loop over cells: it runs on every scan.
+Pure numpy on the sparse (cell, camera) moments, no loop over cells and nothing cameras x cells:
+it runs on every scan. The cameras of a cell sit side by side in those moments, so the pairs of
+cameras in a cell are the moments one, two, ... places apart within the cell.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -21,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from silo_agent.grid.grid import Grid
-from silo_agent.reconstruct.fuse import FusedCloud
+from silo_agent.reconstruct.fuse import FusedCloud, run_starts
 
 MAX_SPREAD_M = 0.05  # a camera's points in a cell spread more in height: a wall, not a surface
 MAX_SLOPE = 1.0  # 45 deg; grain stands at 23-40 deg, walls and pile edges seen edge-on do not
@@ -91,37 +94,48 @@ def registration_residuals(
         mean_z = moments.sum_z / count
         spread = np.sqrt(np.maximum(moments.sum_zz / count - mean_z**2, 0.0))
     # a camera's cell is a surface seen from above, not a wall or post standing in it
-    seen = (count >= min_points) & (spread <= MAX_SPREAD_M)
-    shared = seen.sum(axis=0) >= 2
-    if not np.any(shared):
+    seen = np.flatnonzero((count >= min_points) & (spread <= MAX_SPREAD_M))
+    cell = moments.cell[seen]
+    cameras_seeing = np.bincount(cell, minlength=rows * cols)
+    if not np.any(cameras_seeing >= 2):
         return {}
     # slope from the cameras' mean surface (cells any camera sees; NaN elsewhere)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        surface = np.where(seen, mean_z, 0.0).sum(axis=0) / seen.sum(axis=0)
-    grad_y, grad_x = np.gradient(surface.reshape(rows, cols), grid.step)
-    grad_x, grad_y = grad_x.ravel(), grad_y.ravel()
-    usable = shared & np.isfinite(grad_x) & np.isfinite(grad_y)
+    mz = mean_z[seen]
+    with np.errstate(invalid="ignore", divide="ignore"):  # a bincount adds them in order
+        surface = np.bincount(cell, mz, rows * cols) / cameras_seeing
+    grad_y_grid, grad_x_grid = np.gradient(surface.reshape(rows, cols), grid.step)
+    grad_x, grad_y = grad_x_grid.ravel(), grad_y_grid.ravel()
+    usable = (cameras_seeing >= 2) & np.isfinite(grad_x) & np.isfinite(grad_y)
     usable &= np.hypot(grad_x, grad_y) <= MAX_SLOPE  # steeper than grain stands: walls, edges
-    cells = np.flatnonzero(usable)
-    with np.errstate(invalid="ignore", divide="ignore"):  # NaN where a camera has no point
-        mx = moments.sum_x[:, cells] / count[:, cells]
-        my = moments.sum_y[:, cells] / count[:, cells]
-    mz = mean_z[:, cells]
-    gx, gy, ok = grad_x[cells], grad_y[cells], seen[:, cells]
+    kept = usable[cell]
+    seen, cell, mz = seen[kept], cell[kept], mz[kept]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx = moments.sum_x[seen] / count[seen]
+        my = moments.sum_y[seen] / count[seen]
+    camera = moments.camera[seen].astype(np.int64)
+    gx, gy = grad_x[cell], grad_y[cell]
+    keys, diffs = [], []
+    for apart in range(1, int(cameras_seeing.max())):
+        a = np.flatnonzero(cell[:-apart] == cell[apart:])  # a camera and one `apart` later
+        if len(a) == 0:
+            continue
+        b = a + apart
+        keys.append((camera[a] * n_cams + camera[b]).astype(np.uint16))  # cameras <= 256
+        diffs.append((mz[a] - mz[b]) - gx[a] * (mx[a] - mx[b]) - gy[a] * (my[a] - my[b]))
+    if not keys:
+        return {}
+    key, diff = np.concatenate(keys), np.concatenate(diffs)
+    order = np.argsort(key, kind="stable")  # a counting sort for 16-bit keys
+    key, diff = key[order], diff[order]
+    bounds = [*run_starts(key), len(key)]
     out: dict[str, PairResidual] = {}
-    for i in range(n_cams):
-        for j in range(i + 1, n_cams):
-            both = ok[i] & ok[j]
-            n = int(both.sum())
-            if n < min_cells:
-                continue
-            diff = (
-                (mz[i, both] - mz[j, both])
-                - gx[both] * (mx[i, both] - mx[j, both])
-                - gy[both] * (my[i, both] - my[j, both])
-            )
-            middle = median(diff)
-            mad = median(np.abs(diff - middle))
-            residual = PairResidual(serials[i], serials[j], middle, mad, n)
-            out[residual.key] = residual
+    for first, last in itertools.pairwise(bounds):
+        n = int(last - first)
+        if n < min_cells:
+            continue
+        i, j = divmod(int(key[first]), n_cams)
+        middle = median(diff[first:last])
+        mad = median(np.abs(diff[first:last] - middle))
+        residual = PairResidual(serials[i], serials[j], middle, mad, n)
+        out[residual.key] = residual
     return out
