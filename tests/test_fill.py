@@ -80,7 +80,7 @@ def test_system_matches_the_cell_by_cell_definition(shape, full_domain) -> None:
     np.testing.assert_array_equal(system.dense(), expected_matrix)
     np.testing.assert_allclose(system.rhs, expected_rhs, rtol=0, atol=1e-12)
     values = np.random.default_rng(1).normal(size=len(system.cells))
-    np.testing.assert_allclose(system.apply(values), expected_matrix @ values, atol=1e-12)
+    np.testing.assert_allclose(system.matrix() @ values, expected_matrix @ values, atol=1e-12)
 
 
 def _scipy_solution(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:

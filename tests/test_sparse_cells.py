@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from silo_agent.grid.geometry import _boundary_band, cell_fractions, grid_shape, points_in_polygon
-from silo_agent.reconstruct.fuse import CameraPairs, CellMoments, FusedCloud, Grid
+from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct.fuse import CameraPairs, CellMoments, FusedCloud
 from silo_agent.reconstruct.residual import MAX_SLOPE, MAX_SPREAD_M, registration_residuals
 
 

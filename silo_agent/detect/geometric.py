@@ -23,10 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
-from silo_agent.grid.filters import maximum_filter, minimum_filter
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.smooth import masked_smooth
@@ -57,8 +57,8 @@ def relief(heightmap: HeightMap, base: np.ndarray, background_m: float | None) -
     if background_m is not None:
         size = max(3, 2 * round(background_m / heightmap.step / 2) + 1)
         smooth = masked_smooth(heights, region, max(PEAK_SMOOTHING_M / heightmap.step, 1.0))
-        eroded = minimum_filter(np.where(region, smooth, np.inf), size)
-        opened = maximum_filter(np.where(region, eroded, -np.inf), size)
+        eroded = ndimage.minimum_filter(np.where(region, smooth, np.inf), size)
+        opened = ndimage.maximum_filter(np.where(region, eroded, -np.inf), size)
         floor = np.maximum(base, np.where(region, opened, base))
     return np.where(region, heights - floor, np.nan)
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from silo_agent.grid.filters import box_mean
+from scipy import ndimage
 
 
 def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> np.ndarray:
@@ -18,7 +17,7 @@ def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> n
     size = max(3, 2 * round(sigma_cells * math.sqrt(6) / 2) + 1)
     both = np.stack([mask.astype(np.float64), np.where(mask, values, 0.0)])
     for _ in range(2):
-        both = box_mean(both, size)  # weight and total filtered together
+        both = ndimage.uniform_filter(both, size, mode="constant", axes=(-2, -1))  # both grids
     weight, total = both
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(mask & (weight > 1e-12), total / weight, np.nan)

@@ -14,9 +14,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
-from silo_agent.grid.filters import box_mean, dilate_cross, maximum_filter, minimum_filter
+from silo_agent.grid.filters import dilate_cross
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
@@ -120,7 +121,8 @@ def _slope_corrected(
     it): outside a round region there is none, and a plain mean would carry that NaN along.
     """
     surface = np.isfinite(filled)
-    total, count = box_mean(np.stack([np.where(surface, filled, 0.0), surface]), 3, "nearest")
+    stacked = np.stack([np.where(surface, filled, 0.0), surface])
+    total, count = ndimage.uniform_filter(stacked, 3, mode="nearest", axes=(-2, -1))
     xs, ys = grid.centres()
     with np.errstate(invalid="ignore", divide="ignore"):  # NaN where no cell has a surface
         grad_y, grad_x = np.gradient(total / count, grid.step)
@@ -153,8 +155,8 @@ def _without_spikes(
     """
     size = max(3, 2 * round(SPIKE_WIDTH_M / grid.step / 2) + 1)
     region = grid.inside > 0
-    eroded = minimum_filter(np.where(region, filled, np.inf), size)
-    opened = maximum_filter(np.where(region, eroded, -np.inf), size)
+    eroded = ndimage.minimum_filter(np.where(region, filled, np.inf), size)
+    opened = ndimage.maximum_filter(np.where(region, eroded, -np.inf), size)
     spikes = region & (filled - opened > tolerance)
     return np.where(spikes, opened, filled), observed & ~spikes
 

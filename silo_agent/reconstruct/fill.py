@@ -8,10 +8,9 @@ Observed cells keep their measured value exactly; the fill is smooth and continu
 them. Cost O(cells). Its coarse levels average over wide areas, so a floor hole beside a pile
 borrows pile height.
 
-`membrane_fill`: the harmonic surface of each hole's own boundary. Its 5-point
-Laplace equations are solved in numpy, without assembling a matrix: conjugate gradients
-started from the solution on a grid twice as coarse (itself solved the same way, down to a
-small dense system), so every scan's fill runs without importing scipy.
+`membrane_fill`: the harmonic surface of each hole's own boundary. Its 5-point Laplace
+equations are solved by scipy's conjugate gradients started from the solution on a grid twice
+as coarse (itself solved the same way, down to a small dense system).
 
 `repose_fill` (default): the membrane, capped by the level surface that rises gently from the
 known cells around a hole and raised to the flank that falls from the visible crest at the
@@ -22,8 +21,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_array
 
 _KERNEL = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0  # cubic B-spline low-pass
 _SATURATION = 4.0  # a coarse cell a quarter covered is trusted fully
@@ -80,7 +83,7 @@ _MAX_ITERATIONS = 1000
 
 @dataclass(frozen=True)
 class LaplaceSystem:
-    """The 5-point Laplace equations of the unknown cells, as a stencil: for unknown i,
+    """The 5-point Laplace equations of the unknown cells: for unknown i,
     degree[i] * h[i] - sum of h over its unknown neighbours = rhs[i] (the known in-domain
     neighbours' heights). Neighbours outside `domain` do not take part: the region edge is a
     free (zero-flux) boundary, so a hole touching it is shaped by the data around it alone."""
@@ -90,21 +93,24 @@ class LaplaceSystem:
     degree: np.ndarray  # in-domain neighbours of each unknown
     rhs: np.ndarray
 
-    def apply(self, values: np.ndarray) -> np.ndarray:
-        """The equations' left side for the unknowns' `values`."""
-        padded = np.append(values, 0.0)  # slot n: "no unknown neighbour" reads zero
-        up, left, right, down = (padded[n] for n in self.neighbours)
-        return self.degree * values - (up + left + right + down)
+    def matrix(self) -> csr_array:
+        """The system's sparse matrix (rows and columns numbered as the unknowns), written
+        row by row: a row's columns, up, left, itself, right, below, are already ascending."""
+        from scipy.sparse import csr_array
+
+        count = len(self.cells)
+        up, left, right, down = self.neighbours
+        columns = np.stack([up, left, np.arange(count), right, down], axis=1)
+        values = np.full(columns.shape, -1.0)
+        values[:, 2] = self.degree
+        linked = columns < count
+        starts = np.zeros(count + 1, dtype=np.int64)
+        np.cumsum(linked.sum(axis=1), out=starts[1:])
+        return csr_array((values[linked], columns[linked], starts), shape=(count, count))
 
     def dense(self) -> np.ndarray:
-        """The system's matrix, for small systems."""
-        count = len(self.cells)
-        matrix = np.diag(self.degree)
-        row = np.arange(count)
-        for column in self.neighbours:
-            linked = column < count
-            matrix[row[linked], column[linked]] -= 1.0
-        return matrix
+        """The system's matrix as a dense array, for small systems."""
+        return self.matrix().toarray()
 
 
 def laplace_system(height: np.ndarray, unknown: np.ndarray, domain: np.ndarray) -> LaplaceSystem:
@@ -135,29 +141,15 @@ def laplace_system(height: np.ndarray, unknown: np.ndarray, domain: np.ndarray) 
 def _conjugate_gradients(
     system: LaplaceSystem, guess: np.ndarray, rtol: float, max_iterations: int
 ) -> np.ndarray:
-    """Conjugate gradients from `guess` until the residual is `rtol` of the right side's norm
-    (the system is symmetric positive definite when every hole touches a known cell)."""
-    rhs = system.rhs
-    limit = (rtol * float(np.sqrt(rhs @ rhs))) ** 2
-    if limit == 0.0:  # every known neighbour at height zero: so is the solution
-        return np.zeros_like(rhs)
-    solution = guess.astype(np.float64)
-    residual = rhs - system.apply(solution)
-    direction = residual.copy()
-    squared = float(residual @ residual)
-    for _ in range(max_iterations):
-        if squared <= limit:
-            break
-        image = system.apply(direction)
-        curvature = float(direction @ image)
-        if curvature <= 0.0:  # a hole with no data at all: nothing more to learn
-            break
-        step = squared / curvature
-        solution += step * direction
-        residual -= step * image
-        previous, squared = squared, float(residual @ residual)
-        direction *= squared / previous
-        direction += residual
+    """scipy's conjugate gradients from `guess` until the residual is `rtol` of the right
+    side's norm (the system is symmetric positive definite when every hole touches a known
+    cell). The hand-written iteration it replaces was 1.4x faster on one bench fill and 1.3x
+    slower on another (bench/scaling.py): no reason to keep our own."""
+    from scipy.sparse.linalg import cg
+
+    solution, _ = cg(
+        system.matrix(), system.rhs, guess, rtol=rtol, atol=0.0, maxiter=max_iterations
+    )
     return solution
 
 
