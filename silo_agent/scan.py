@@ -5,6 +5,7 @@ A reader rejects a bad directory with a `ScanError` naming the file and the prob
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -15,7 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
-from typing import Any, BinaryIO, Literal
+from typing import Any, BinaryIO, Literal, cast
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -328,49 +329,68 @@ def _ply_header(path: Path, header: list[str]) -> tuple[int, list[tuple[str, str
     return count, props
 
 
-def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read a binary little-endian PLY cloud: (points (N,3) float32, colours (N,3) uint8 | None).
+@dataclass(frozen=True)
+class PlyLayout:
+    """Where a PLY cloud's vertices are and how they are laid out, from its header alone."""
 
-    The header is read first and the body only when the file's size is what it announces,
-    so a wrong or endless file costs no more than the header. Points come back as stored,
-    NaN and all: `read_scan` drops those that are not measurements (`measured_only`)."""
+    path: Path
+    count: int
+    dtype: np.dtype
+    body_offset: int
+
+
+def ply_layout(path: Path) -> PlyLayout:
+    """Read and check a binary little-endian PLY's header, and that the file is as long as it
+    announces: a wrong or endless file costs no more than the header, and a scan's clouds can
+    all be measured against the limits before any of them is read."""
     with _open_regular(path) as handle:
         try:
             start = handle.read(MAX_PLY_HEADER_BYTES)
             size = os.fstat(handle.fileno()).st_size
         except OSError as exc:
             raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
-        end = start.find(b"end_header\n")
-        if not start.startswith(b"ply\n") or end < 0:
-            raise ScanError(
-                f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the "
-                f"first {MAX_PLY_HEADER_BYTES // 1024} KiB)"
-            )
-        header = start[:end].decode("ascii", errors="replace").splitlines()
-        count, props = _ply_header(path, header)
-        dtype = np.dtype(props)
-        expected = count * dtype.itemsize
-        body_bytes = size - (end + len(b"end_header\n"))
-        if body_bytes != expected:
-            raise ScanError(
-                f"{path}: header says {count} points ({expected} bytes) but the body has "
-                f"{body_bytes} bytes"
-            )
-        if count == 0:
-            raise ScanError(f"{path}: the cloud is empty (0 points)")
-        handle.seek(end + len(b"end_header\n"))
+    end = start.find(b"end_header\n")
+    if not start.startswith(b"ply\n") or end < 0:
+        raise ScanError(
+            f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the "
+            f"first {MAX_PLY_HEADER_BYTES // 1024} KiB)"
+        )
+    header = start[:end].decode("ascii", errors="replace").splitlines()
+    count, props = _ply_header(path, header)
+    dtype = np.dtype(props)
+    expected = count * dtype.itemsize
+    body_offset = end + len(b"end_header\n")
+    if size - body_offset != expected:
+        raise ScanError(
+            f"{path}: header says {count} points ({expected} bytes) but the body has "
+            f"{size - body_offset} bytes"
+        )
+    if count == 0:
+        raise ScanError(f"{path}: the cloud is empty (0 points)")
+    return PlyLayout(path, count, dtype, body_offset)
+
+
+def read_ply(path: Path | PlyLayout) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a binary little-endian PLY cloud: (points (N,3) float32, colours (N,3) uint8 | None).
+
+    The body is read straight into the array the engine uses when the file holds x, y, z
+    alone (one copy, no bytes object in between); with more properties, into a record array
+    whose coordinates are then gathered. Points come back as stored, NaN and all: `read_scan`
+    drops those that are not measurements (`measured_only`)."""
+    layout = path if isinstance(path, PlyLayout) else ply_layout(path)
+    xyz_only = layout.dtype.itemsize == 12
+    shape = (layout.count, 3) if xyz_only else (layout.count,)
+    data: np.ndarray[Any, np.dtype[Any]] = np.empty(shape, np.float32 if xyz_only else layout.dtype)
+    with _open_regular(layout.path) as handle:
         try:
-            body = handle.read(expected)
+            handle.seek(layout.body_offset)
+            got = cast(io.BufferedReader, handle).readinto(data.data.cast("B"))
         except OSError as exc:
-            raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if len(body) != expected:
-        raise ScanError(f"{path}: changed while it was read ({len(body)} of {expected} bytes)")
-    data = np.frombuffer(body, dtype=dtype, count=count)
-    if dtype.itemsize == 12:
-        points = data.view("<f4").reshape(count, 3).astype(np.float32)
-    else:
-        points = np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32)
-    names = dtype.names or ()
+            raise ScanError(f"{layout.path}: cannot read: {exc.strerror or exc}") from None
+    if got != data.nbytes:
+        raise ScanError(f"{layout.path}: changed while it was read ({got} of {data.nbytes} bytes)")
+    points = data if xyz_only else np.stack([data["x"], data["y"], data["z"]], axis=1)
+    names = data.dtype.names or ()
     colors = None
     if all(c in names for c in ("red", "green", "blue")):
         colors = np.stack([data["red"], data["green"], data["blue"]], axis=1).astype(np.uint8)
@@ -441,17 +461,19 @@ def read_scan(directory: str | Path) -> Scan:
         base=manifest.site.base,
         bulk_density_t_m3=manifest.site.bulk_density_t_m3,
     )
-    cameras = []
-    known = {"serial", "cloud", "extrinsic", "intrinsics"}
+    layouts = [ply_layout(directory / camera.cloud) for camera in manifest.cameras]
     total = 0
-    for raw_camera, camera in zip(data["cameras"], manifest.cameras, strict=True):
-        points, colors = read_ply(directory / camera.cloud)
-        total += len(points)
+    for layout in layouts:  # every header first: refused before any cloud is read
+        total += layout.count
         if total > MAX_SCAN_POINTS:
             raise ScanError(
                 f"{directory}: more than the limit of {MAX_SCAN_POINTS:,} points in "
-                f"all clouds together (at {camera.cloud})"
+                f"all clouds together (at {layout.path.name})"
             )
+    cameras = []
+    known = {"serial", "cloud", "extrinsic", "intrinsics"}
+    for raw_camera, camera, layout in zip(data["cameras"], manifest.cameras, layouts, strict=True):
+        points, colors = read_ply(layout)
         cloud = CameraCloud(
             serial=camera.serial,
             points=points,
