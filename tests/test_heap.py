@@ -29,3 +29,32 @@ def _faults(mode: str) -> int:
 def test_freed_arrays_are_reused_without_page_faults() -> None:
     assert _faults("default") > 50  # glibc hands the 16 MB back and faults it in again
     assert _faults("keep") < 5
+
+
+# Whether numpy advises huge pages on its arrays, after the command line ran a command.
+HUGE_PAGES = """
+import sys
+from silo_agent.cli import main
+main(["process", sys.argv[1]])  # a missing directory: refused, after the command's set-up
+import numpy
+print(numpy._core.multiarray._get_madvise_hugepage())
+"""
+
+
+def _advised(tmp_path, environment: dict[str, str]) -> str:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"} | environment
+    out = subprocess.run(
+        [sys.executable, "-c", HUGE_PAGES, str(tmp_path / "missing")],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
+    return out.stdout.strip()
+
+
+def test_commands_run_numpy_without_huge_page_advice_unless_asked(tmp_path) -> None:
+    assert _advised(tmp_path, {}) == "False"
+    assert _advised(tmp_path, {"NUMPY_MADVISE_HUGEPAGE": "1"}) == "True"

@@ -6,11 +6,18 @@ kernel faults and zeroes each new one page by page: about a fifth of the reconst
 (bench/speed.py measures it). Raising the mmap and trim thresholds makes glibc keep those pages
 in its heap and reuse them. The price: the process keeps its peak heap between scans (a few
 hundred MB for four 400k-point clouds at a 1 cm grid). Other C libraries: nothing changes.
+
+numpy also asks the kernel for transparent huge pages (madvise) on every array of 4 MB or more.
+Where the kernel's THP defrag is `madvise` (Debian's default), each such fault may compact
+memory first: on the bench machine that made a 12 m silo's `process` at 1 cm take 2.40 s of CPU
+instead of 1.97 s (median of 4 alternating runs each; bench/silos.py's scan). `small_pages`
+asks numpy, before it is imported, not to; the documented NUMPY_MADVISE_HUGEPAGE=1 still wins.
 """
 
 from __future__ import annotations
 
 import ctypes
+import os
 
 M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers (malloc.h)
 M_MMAP_THRESHOLD = -3
@@ -29,3 +36,8 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
         mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
     )
+
+
+def small_pages() -> None:
+    """Before numpy is imported: no huge-page advice on its arrays unless the environment asks."""
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")

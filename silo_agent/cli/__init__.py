@@ -291,8 +291,9 @@ def _dispatch(args: argparse.Namespace) -> int:
     # pydantic scans every installed package for plugins at its first model (~0.02 s, paid by
     # every one-off `process`); the agent uses none. An explicit setting, even empty, wins.
     os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")
-    from silo_agent.base.heap import keep_freed_memory
+    from silo_agent.base.heap import keep_freed_memory, small_pages
 
+    small_pages()  # numpy is not imported yet (the parser needs none of it)
     keep_freed_memory()
     if args.handler != PROCESS:  # process sets logging up itself, only when it will log
         configure_logging(args)
