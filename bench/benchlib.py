@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import pickle
 import platform
@@ -25,7 +27,11 @@ from silo_agent.config import ReconstructionConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.fuse import fuse_and_crop
-from silo_agent.scan import Scan, write_ply
+from silo_agent.scan import Scan, Site, write_ply
+from silo_agent.sim.grains import grain
+from silo_agent.sim.layouts import EAVE_AIM, EAVE_INSET_M, look_at
+from silo_agent.sim.scenes import Scene, bin_scene, cone_height, numeric_volume
+from silo_agent.sim.simulate import SimRig, plan_view
 
 REPO = Path(__file__).resolve().parent.parent
 CLOUDCOMPARE = "CloudCompare"
@@ -189,3 +195,212 @@ def fmt(value: Any, spec: str = ".4f", missing: str = "—") -> str:
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
         return missing
     return format(value, spec)
+
+
+# ---------------------------------------------------------------- big silos (issue 22)
+
+# A child process's peak memory (ru_maxrss) starts at its parent's size on Linux (the mark
+# survives exec), and a bench holding scans is large: a small launcher runs the command and
+# reports its child's peak, user + system time, wall time and the command's stdout.
+_LAUNCHER = """
+import json, os, subprocess, sys, time
+start = time.perf_counter()
+child = subprocess.Popen(sys.argv[2:], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                         cwd=sys.argv[1] or None)
+out = child.stdout.read()
+_, status, usage = os.wait4(child.pid, 0)
+wall = time.perf_counter() - start
+print(json.dumps({"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
+                  "peak_mb": usage.ru_maxrss / 1024, "status": os.waitstatus_to_exitcode(status),
+                  "stdout": out.decode(errors="replace")}))
+"""
+
+
+@dataclass(frozen=True)
+class Measured:
+    wall_s: float
+    cpu_s: float  # user + system
+    peak_mb: float  # the process's peak resident memory
+    stdout: str
+
+
+def measured(
+    command: list[str], cwd: Path | None = None, env: dict[str, str] | None = None
+) -> Measured:
+    """Run `command` to completion as a grandchild of a small launcher (see _LAUNCHER)."""
+    done = subprocess.run(
+        [sys.executable, "-c", _LAUNCHER, str(cwd or ""), *command],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
+    report = json.loads(done.stdout)
+    if report["status"] != 0:
+        raise RuntimeError(f"{shlex.join(command)} exited {report['status']}")
+    return Measured(report["wall_s"], report["cpu_s"], report["peak_mb"], report["stdout"])
+
+
+def cloudcompare_command(ply: Path, step: float, floor_z: float) -> list[str]:
+    """CloudCompare's headless 2.5D volume of `ply` above a constant floor (run it in the
+    PLY's directory: it writes its report there)."""
+    return [
+        CLOUDCOMPARE,
+        "-SILENT",
+        "-AUTO_SAVE",
+        "OFF",
+        "-O",
+        str(ply),
+        "-VOLUME",
+        "-GRID_STEP",
+        f"{step:g}",
+        "-CONST_HEIGHT",
+        f"{floor_z:g}",
+    ]
+
+
+def cloudcompare_report_volume(directory: Path) -> float:
+    """The volume in the one CloudCompare report in `directory` (the report is removed)."""
+    reports = list(directory.glob("VolumeCalculationReport*.txt"))
+    if len(reports) != 1:
+        raise RuntimeError(f"CloudCompare wrote {len(reports)} volume reports in {directory}")
+    found = re.search(r"^Volume:\s*([-+0-9.eE]+)", reports[0].read_text(), re.MULTILINE)
+    reports[0].unlink()
+    if found is None:
+        raise RuntimeError(f"no 'Volume:' line in CloudCompare's report in {directory}")
+    return float(found.group(1))
+
+
+# the round bins of the big-silo benches: diameter -> (eave, grain at the wall, heap radius),
+# in the proportions of the simulator's bin-18. "20 m" is 19.99 m: the region of an exact
+# 20 m bin (a 720-gon of the circle's area) is 20.0001 m across, 2001 x 2001 cells at 1 cm,
+# just past the 4 M-cell limit (base/limits.py)
+BIG_BINS = {12.0: (12.0, 8.0, 2.0, 4.0), 20.0: (19.99, 12.0, 3.5, 6.5)}
+FULL_RESOLUTION = (1280, 720)
+
+
+def big_bin(diameter_m: float) -> Scene:
+    actual, eave, level, heap = BIG_BINS[diameter_m]
+    return bin_scene(
+        grain("wheat"),
+        name=f"bin-{actual:g}m",
+        diameter_m=actual,
+        eave_m=eave,
+        level_m=level,
+        feature_radius_m=heap,
+    )
+
+
+def eave_pose(scene: Scene, bearing_rad: float) -> np.ndarray:
+    """An eave camera at `bearing_rad`, placed and aimed as the simulator's eave layout places
+    A1-A8 (EAVE_INSET_M inside the wall, aimed EAVE_AIM of the radius past the centre), so
+    16 cameras are the eight views and the eight between them."""
+    assert scene.bin is not None
+    centre, radius = np.asarray(scene.bin.centre), scene.bin.radius_m
+    direction = np.array([np.cos(bearing_rad), np.sin(bearing_rad)])
+    xy = centre + direction * (radius - EAVE_INSET_M)
+    target = np.append(centre - direction * EAVE_AIM * radius, scene.target[2])
+    return look_at(np.array([xy[0], xy[1], scene.wall_camera_z]), target)
+
+
+def big_bin_scan(scene: Scene, cameras: int, seed: int = 0, rig: SimRig | None = None) -> Scan:
+    """`cameras` full-resolution D455s evenly round the eave of a big bin."""
+    rig = rig or SimRig(scene)
+    clouds = []
+    for k in range(cameras):
+        bearing = 2 * np.pi * k / cameras - np.pi / 2  # the first at -y, as A1
+        view = plan_view(
+            f"E{k + 1:02d}",
+            f"sim-E{k + 1:02d}",
+            eave_pose(scene, bearing),
+            seed,
+            (0.0, 0.0),
+            *FULL_RESOLUTION,
+        )
+        clouds.append(dataclasses.replace(rig.cloud(view, seed), colors=None))
+    return Scan(
+        scan_id=f"{scene.name}-{cameras}cams-s{seed}",
+        captured_at="2026-12-02T00:00:00Z",
+        silo_id="bench",
+        site=scene.site,
+        cameras=clouds,
+        reconstruction={"grid_step_m": 0.01},
+        extra={"truth": scene.truth()},
+    )
+
+
+# An 8 x 6 m walled bay with two piles, seen by four wall cameras that leave about a third of
+# it unobserved: the case where the fill dominates (issue 22)
+BAY_HALF = (4.0, 3.0)
+BAY_WALL_M, BAY_CEILING_M, BAY_CAMERA_Z = 3.5, 3.0, 3.2
+BAY_CAMERAS = (
+    ((-3.95, -2.95), (-0.5, 0.3)),
+    ((3.95, -2.95), (1.0, 0.3)),
+    ((0.0, -2.95), (0.0, 0.8)),
+    ((-3.95, 0.0), (-0.5, 0.0)),
+)  # (position, aim)
+
+
+def bay_scene() -> Scene:
+    wheat = grain("wheat")
+    hx, hy = BAY_HALF
+
+    def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        inside = (np.abs(x) <= hx) & (np.abs(y) <= hy)
+        piles = np.maximum(
+            cone_height(x, y, (-1.5, 0.5), 2.0, wheat.slope),
+            cone_height(x, y, (1.8, -0.8), 1.6, wheat.slope),
+        )
+        return np.where(inside, 0.4 + piles, BAY_WALL_M)
+
+    margin = 0.3
+    region = np.array(
+        [
+            [-hx + margin, -hy + margin],
+            [hx - margin, -hy + margin],
+            [hx - margin, hy - margin],
+            [-hx + margin, hy - margin],
+        ]
+    )
+    site = Site(region, floor_z=0.0, ceiling_z=BAY_CEILING_M, bulk_density_t_m3=wheat.density_t_m3)
+    return Scene(
+        name="bay-8x6",
+        grain=wheat,
+        site=site,
+        height=height,
+        extent=(-hx - 0.1, hx + 0.1, -hy - 0.1, hy + 0.1),
+        outer_z=None,
+        volume_m3=numeric_volume(height, region, 0.0, 0.005),
+        target=(0.0, 0.0, 0.4),
+        layout="wall",
+        wall_half_m=hx,
+        wall_camera_z=BAY_CAMERA_Z,
+    )
+
+
+def bay_scan(scene: Scene, seed: int, rig: SimRig) -> Scan:
+    clouds = []
+    for k, ((x, y), (ax, ay)) in enumerate(BAY_CAMERAS):
+        pose = look_at(np.array([x, y, BAY_CAMERA_Z]), np.array([ax, ay, 0.4]))
+        view = plan_view(f"B{k + 1}", f"sim-B{k + 1}", pose, seed, (0.0, 0.0))
+        clouds.append(dataclasses.replace(rig.cloud(view, seed), colors=None))
+    return Scan(
+        scan_id=f"bay-{seed:02d}",
+        captured_at="2026-12-02T00:00:00Z",
+        silo_id="bench",
+        site=scene.site,
+        cameras=clouds,
+        reconstruction={"grid_step_m": 0.01},
+        extra={"truth": scene.truth()},
+    )
+
+
+def resampled(scan: Scan, total: int, seed: int = 0) -> Scan:
+    """The scan with each camera's cloud drawn (with replacement if short) to total/len points."""
+    rng = np.random.default_rng(seed)
+    per = total // len(scan.cameras)
+    cameras = []
+    for cam in scan.cameras:
+        pick = rng.choice(len(cam.points), per, replace=len(cam.points) < per)
+        cameras.append(dataclasses.replace(cam, points=cam.points[pick], colors=None))
+    return dataclasses.replace(scan, cameras=cameras)

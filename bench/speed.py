@@ -29,8 +29,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import numpy as np
-from benchlib import REPO, cloudcompare_volume, fmt, fused_cloud, header
+from benchlib import REPO, cloudcompare_volume, fmt, fused_cloud, header, resampled
 
 from silo_agent.base.heap import keep_freed_memory
 from silo_agent.config import ReconstructionConfig
@@ -42,17 +41,6 @@ from silo_agent.sim.simulate import simulate
 VIEWS = ["A1", "A3", "A5", "A7"]
 POINTS = (200_000, 400_000, 800_000, 1_600_000, 3_200_000)
 STEPS = (0.04, 0.02, 0.01, 0.005)
-
-
-def resampled(scan: Scan, total: int, seed: int = 0) -> Scan:
-    """The scan with each camera's cloud drawn (with replacement if short) to total/len points."""
-    rng = np.random.default_rng(seed)
-    per = total // len(scan.cameras)
-    cameras = []
-    for cam in scan.cameras:
-        pick = rng.choice(len(cam.points), per, replace=len(cam.points) < per)
-        cameras.append(dataclasses.replace(cam, points=cam.points[pick], colors=None))
-    return dataclasses.replace(scan, cameras=cameras)
 
 
 def median_time(fn: Callable[[], object], runs: int) -> tuple[float, list[float]]:

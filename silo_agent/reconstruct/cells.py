@@ -133,7 +133,8 @@ def _segments(
             "sort key; crop the cloud (ceiling_z) or use a coarser grid"
         )
     fine_mask = (1 << bin_bits) - 1
-    key = cell << (height_bits + cam_bits + bin_bits)
+    key = cell.astype(np.int64)
+    key <<= height_bits + cam_bits + bin_bits
     key |= (z_q >> bin_bits) << (cam_bits + bin_bits)
     key |= camera.astype(np.int64) << bin_bits
     z_q &= fine_mask
@@ -145,13 +146,13 @@ def _segments(
         key = _radix_sorted(key, bin_bits, bin_bits + sorted_bits)
     segment_key = key >> bin_bits
     s_start = run_starts(segment_key)
-    s_n = np.diff(np.append(s_start, len(key)))
+    s_n = np.diff(np.append(s_start, len(key))).astype(np.int32)
     key &= fine_mask
     s_fine = np.add.reduceat(key, s_start)  # heights within the bin, summed
     del key
     s_key = segment_key[s_start]
     del segment_key, s_start
-    s_cam = s_key & ((1 << cam_bits) - 1)
+    s_cam = (s_key & ((1 << cam_bits) - 1)).astype(np.uint8)
     s_bin = s_key >> cam_bits  # (cell, height bin)
     del s_key
     s_z_sum = (s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits) + s_fine) * Z_QUANTUM_M
@@ -203,7 +204,7 @@ def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: 
     # grain (a wall seen through depth noise, a post) and only its lowest part is grain
     bottom = b_key[c_bin[new_cluster]][cluster_of_core_bin]
     thin = b_key[c_bin] - bottom <= double_surface / bin_width
-    bin_cluster = np.full(len(b_key), -1, dtype=np.int64)
+    bin_cluster = np.full(len(b_key), -1, dtype=np.int32)  # clusters <= points
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
     segment_cluster = np.repeat(bin_cluster, np.diff(np.append(b_start, len(s_bin))))
     c_cell = b_cell[c_bin[new_cluster]]

@@ -36,8 +36,8 @@ class CameraPairs:
     """The (group, camera) pairs that occur among elements each in a group (a cell, a
     cluster) and seen by a camera, numbered in (group, camera) order."""
 
-    of_element: np.ndarray  # (N,) int64: the pair each element belongs to
-    group: np.ndarray  # (pairs,) int64, ascending
+    of_element: np.ndarray  # (N,) int32: the pair each element belongs to
+    group: np.ndarray  # (pairs,) the groups' dtype, ascending
     camera: np.ndarray  # (pairs,) uint8, ascending within a group
 
     @classmethod
@@ -51,14 +51,17 @@ class CameraPairs:
         camera = camera.astype(np.uint8, copy=False)
         word, bit = np.divmod(camera, 64)
         np.bitwise_or.at(masks, (word, group), np.left_shift(1, bit, dtype=dtype))
-        per_group = np.bitwise_count(masks).sum(axis=0, dtype=np.int64)
-        first = np.cumsum(per_group) - per_group  # number of a group's first pair
-        below = np.bitwise_count(masks[word, group] & (np.left_shift(1, bit, dtype=dtype) - 1))
-        of_element = first[group] + below
+        per_group = np.bitwise_count(masks).sum(axis=0, dtype=np.int32)  # pairs <= points
+        first = np.cumsum(per_group, dtype=np.int32) - per_group  # a group's first pair
+        of_element = first[group]
+        del first
+        of_element += np.bitwise_count(
+            masks[word, group] & (np.left_shift(1, bit, dtype=dtype) - 1)
+        )
         for lower in range(1, words):  # cameras of the words below, for cameras past 64
             of_element += np.where(word >= lower, np.bitwise_count(masks[lower - 1, group]), 0)
-        n_pairs = int(per_group.sum())
-        pair_group = np.empty(n_pairs, np.int64)
+        n_pairs = int(per_group.sum(dtype=np.int64))
+        pair_group = np.empty(n_pairs, group.dtype)
         pair_group[of_element] = group
         pair_camera = np.empty(n_pairs, np.uint8)
         pair_camera[of_element] = camera
@@ -78,7 +81,7 @@ class CellMoments:
     which float32's 7 digits cannot carry.
     """
 
-    cell: np.ndarray  # (pairs,) int64 flat cell index, ascending
+    cell: np.ndarray  # (pairs,) int32 flat cell index, ascending
     camera: np.ndarray  # (pairs,) uint8, ascending within a cell
     count: np.ndarray  # int64
     sum_x: np.ndarray  # float64, like the other sums
@@ -124,7 +127,7 @@ class FusedCloud:
 
     points: np.ndarray  # (N, 3) float32
     camera: np.ndarray  # (N,) uint8 index into the scan's cameras
-    cell: np.ndarray  # (N,) int64 flat cell index (row * cols + col)
+    cell: np.ndarray  # (N,) int32 flat cell index (row * cols + col)
     raw_count: int
     moments: CellMoments  # of these points
 
@@ -140,7 +143,7 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
     total = sum(len(c.points) for c in cameras)
     points = np.empty((total, 3), np.float32)
     camera_of = np.empty(total, np.uint8)
-    cell = np.empty(total, np.int64)
+    cell = np.empty(total, np.int32)  # MAX_GRID_CELLS fits
     used = 0
     for index, camera in enumerate(cameras):
         silo = camera.points_in_silo()
@@ -153,7 +156,7 @@ def fuse_and_crop(cameras: list[CameraCloud], site: Site, grid: Grid) -> FusedCl
         kept = np.flatnonzero(keep)
         end = used + len(kept)
         np.take(silo, kept, axis=0, out=points[used:end])
-        np.take(flat, kept, out=cell[used:end])
+        cell[used:end] = flat[kept]
         camera_of[used:end] = index
         used = end
     points, camera_of, cell = points[:used], camera_of[:used], cell[:used]
