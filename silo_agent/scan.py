@@ -19,7 +19,14 @@ from pathlib import Path
 from typing import Any, BinaryIO, Literal, cast
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from silo_agent.base.atomic import publish_directory
 from silo_agent.base.choices import DEFAULT_MAX_DEPTH_M, DEFAULT_MIN_DEPTH_M
@@ -34,6 +41,7 @@ from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.geometry import check_polygon, gravity_angle_deg, rigid_transform_problem
 
 FORMAT = "silo-scan/1"
+FORMAT_WITH_BIN = "silo-scan/2"  # adds site.bin; a scan without one is still written as /1
 MANIFEST = "scan.json"
 
 
@@ -209,12 +217,30 @@ class _Camera(_Open):
         return rows
 
 
+class _Bin(_Open):
+    eave_z: float
+    floor: Literal["flat", "hopper", "sloped"] = "flat"
+    centre: tuple[float, float] = (0.0, 0.0)
+    diameter_m: float | None = None
+    wall: list[tuple[float, float]] | None = None
+    hopper_depth_m: float = 0.0
+    outlet_diameter_m: float = 0.0
+    floor_slope_deg: float = 0.0
+    floor_downhill_deg: float = 0.0
+    roof_pitch_deg: float = 30.0
+    headspace_from: Literal["eave", "roof"] = "eave"
+
+
+_SCAN_KEYS = {"eave_height_m": "eave_z"}  # BinShape names the config's keys
+
+
 class _Site(_Open):
     region: list[tuple[float, float]]
     floor_z: float
     ceiling_z: float | None = None
     base: Literal["floor", "boundary"] = "floor"
     bulk_density_t_m3: float | None = Field(default=None, gt=0)
+    bin: _Bin | None = None
 
     @field_validator("region")
     @classmethod
@@ -224,9 +250,26 @@ class _Site(_Open):
             raise ValueError(problem)
         return region
 
+    @model_validator(mode="after")
+    def _bin_consistent(self) -> _Site:
+        shape = self.bin_shape()
+        if shape is None:
+            return self
+        for key, problem in shape.problems():
+            raise ValueError(f"bin.{_SCAN_KEYS.get(key, key)}: {problem}")
+        outside = shape.region_problem(np.asarray(self.region, dtype=float))
+        if outside:
+            raise ValueError(f"region: {outside}")
+        return self
+
+    def bin_shape(self) -> BinShape | None:
+        if self.bin is None:
+            return None
+        return BinShape.from_json(self.bin.model_dump(), self.floor_z)
+
 
 class _Manifest(_Open):
-    format: Literal["silo-scan/1"]
+    format: Literal["silo-scan/1", "silo-scan/2"]
     scan_id: str = Field(pattern=r"^[A-Za-z0-9._-]+$")
     captured_at: str
     silo_id: str = Field(min_length=1)
@@ -460,6 +503,7 @@ def read_scan(directory: str | Path) -> Scan:
         ceiling_z=manifest.site.ceiling_z,
         base=manifest.site.base,
         bulk_density_t_m3=manifest.site.bulk_density_t_m3,
+        bin=manifest.site.bin_shape(),
     )
     layouts = [ply_layout(directory / camera.cloud) for camera in manifest.cameras]
     total = 0
@@ -508,7 +552,7 @@ def manifest_of(scan: Scan) -> dict[str, Any]:
         entry.update(camera.extra)
         cameras.append(entry)
     return {
-        "format": FORMAT,
+        "format": FORMAT if scan.site.bin is None else FORMAT_WITH_BIN,
         "scan_id": scan.scan_id,
         "captured_at": scan.captured_at,
         "silo_id": scan.silo_id,

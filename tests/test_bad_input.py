@@ -59,7 +59,7 @@ def _delete(path: list):
         (_delete(["scan_id"]), ["scan.json", "scan_id", "required"]),
         (_delete(["site", "floor_z"]), ["site.floor_z", "required"]),
         (_set(["site", "floor_z"], "low"), ["site.floor_z"]),
-        (_set(["format"], "silo-scan/2"), ["format"]),
+        (_set(["format"], "silo-scan/9"), ["format"]),
         (_set(["captured_at"], "yesterday"), ["captured_at", "RFC 3339"]),
         (_set(["cameras", 0, "extrinsic", 0, 0], 2.0), ["cameras.0.extrinsic", "rigid"]),
         (_set(["cameras", 0, "extrinsic", 1], [0, 1, 0]), ["cameras.0.extrinsic", "4x4"]),

@@ -72,6 +72,10 @@ class ScanSummary:
     level: Level | None
     valid: bool
     invalid_reason: str | None
+    capacity_m3: float | None = None  # a bin's ([silo.bin]); None without one
+    fill_ratio: float | None = None
+    headspace_m: float | None = None
+    headspace_mean_m: float | None = None
     cameras: Cameras
     points: Mapping[str, int] = _engine()
     parameters: Mapping[str, Any] = _engine()
@@ -159,6 +163,7 @@ def summarise(
             reconstructed=False,
         )
     result = outcome.reconstruction
+    bin_figures = result.bin_figures()
     surface = level = None
     if result.surface is not None:
         s, floor = result.surface, result.floor_z
@@ -175,6 +180,10 @@ def summarise(
         level=level,
         valid=result.valid,
         invalid_reason=result.invalid_reason,
+        capacity_m3=result.capacity_m3,
+        fill_ratio=bin_figures["fill_ratio"],
+        headspace_m=bin_figures["headspace_m"],
+        headspace_mean_m=bin_figures["headspace_mean_m"],
         cameras=Cameras(tuple(result.cameras), tuple(failed)),
         points=result.points,
         parameters=result.parameters,
@@ -216,6 +225,10 @@ def _from_json(cls: type[ScanSummary], data: Mapping[str, Any]) -> ScanSummary:
         level=_part(data, "level", lambda v: Level(**v)),
         valid=data["valid"],
         invalid_reason=data.get("invalid_reason"),
+        capacity_m3=data.get("capacity_m3"),
+        fill_ratio=data.get("fill_ratio"),
+        headspace_m=data.get("headspace_m"),
+        headspace_mean_m=data.get("headspace_mean_m"),
         cameras=_part(
             data,
             "cameras",

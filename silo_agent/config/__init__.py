@@ -27,7 +27,7 @@ from silo_agent.config.outputs import AuditConfig, MetricsConfig
 from silo_agent.config.reconstruction import ReconstructionConfig
 from silo_agent.config.root import Config
 from silo_agent.config.schedule import ScheduleConfig, scan_gap_s, stale_after_s
-from silo_agent.config.silo import SiloConfig
+from silo_agent.config.silo import BinConfig, SiloConfig
 from silo_agent.config.web import WebConfig, read_token
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "SPACING_SIGMA_M",
     "AlarmsConfig",
     "AuditConfig",
+    "BinConfig",
     "CalibrationConfig",
     "CameraConfig",
     "Config",

@@ -45,6 +45,12 @@ class ReconstructionConfig(Strict):
         default=None, gt=0, lt=90, description="angle of repose; default the grain's"
     )
     slope_correction: bool = True
+    depth_noise_factor: float = Field(
+        default=2.5,
+        gt=0,
+        description="the cameras' depth RMS over the D455's ideal-target figure; sets how near "
+        "the wall a point is left out while the grain height at the wall is found",
+    )
     min_coverage: float = Field(default=0.3, ge=0, le=1)
     alpha_m: float | None = Field(
         default=None, gt=0, description="alpha baseline radius; default 4 x grid step"

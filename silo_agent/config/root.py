@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Annotated
 
-import numpy as np
 from pydantic import (
     Field,
     model_validator,
@@ -46,7 +45,7 @@ class Config(Strict):
 
     @model_validator(mode="after")
     def _grid_fits(self) -> Config:
-        rows, cols = grid_shape(np.asarray(self.silo.region), self.reconstruction.grid_step_m)
+        rows, cols = grid_shape(self.silo.region_polygon(), self.reconstruction.grid_step_m)
         cells = rows * cols
         if cells > MAX_GRID_CELLS:
             raise PydanticCustomError(

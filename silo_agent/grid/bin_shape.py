@@ -172,8 +172,6 @@ class BinShape:
             if self.diameter_m is None:
                 out.append(("floor", "a conical hopper needs a round bin (diameter_m)"))
                 return out
-            if not self.hopper_depth_m > 0:
-                out.append(("hopper_depth_m", "a hopper floor needs a depth or an angle"))
             if not 0 < self.outlet_diameter_m < self.diameter_m:
                 out.append(
                     (
@@ -182,6 +180,8 @@ class BinShape:
                         f"got {self.outlet_diameter_m}",
                     )
                 )
+            elif not self.hopper_depth_m > 0:
+                out.append(("hopper_depth_m", "a hopper floor needs a depth or an angle"))
         if self.floor == "sloped" and not 0 <= self.floor_slope_deg < 60:
             out.append(("floor_slope_deg", f"must be in [0, 60), got {self.floor_slope_deg}"))
         if not 0 <= self.roof_pitch_deg < 80:

@@ -197,3 +197,66 @@ def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:
     return Levels(
         float(values.min()), float(np.sum(values * weights) / np.sum(weights)), float(values.max())
     )
+
+
+LEVEL_SCALE_M = 0.4  # where a bin's highest and lowest grain are looked for ...
+LEVEL_FIT_RADIUS_M = 1.0  # ... and the radius of the cone fitted there
+LEVEL_WALL_BAND_M = 0.3  # ... but not this close to a bin's wall
+LEVEL_CONE_MIN_SLOPE = 0.15  # a fitted slope under this (8.5 deg) is a flat surface's noise
+GRAIN_MIN_DEPTH_M = 0.10  # grain, for a bin's levels: this deep, smoothed at LEVEL_SCALE_M
+
+
+def _fitted_peak(
+    grid: Grid, heights: np.ndarray, cells: np.ndarray, at: tuple[int, int], radius_m: float
+) -> float:
+    """Height at cell `at` of the cone h = a + b * distance fitted (least squares) to the
+    `cells` within `radius_m` of it: exact on a heap's apex or a crater's bottom, the local
+    mean on a flat surface (there the plain mean: extrapolating a noisy slope to the centre
+    would read the very dip or bump that made the cell an extreme)."""
+    xs, ys = grid.centres()
+    distance = np.hypot(xs - xs[at], ys - ys[at])
+    near = cells & (distance <= radius_m)
+    design = np.column_stack([np.ones(int(near.sum())), distance[near]])
+    (peak, slope), *_ = np.linalg.lstsq(design, heights[near], rcond=None)
+    if abs(slope) < LEVEL_CONE_MIN_SLOPE:  # no cone: the local mean, not an extrapolation
+        return float(np.mean(heights[near]))
+    return float(peak)
+
+
+def grain_levels(
+    grid: Grid,
+    heights: np.ndarray,
+    counted: np.ndarray,
+    observed: np.ndarray,
+    off_wall: np.ndarray,
+) -> Levels:
+    """A bin's min, mean and max grain level, over the cells where grain stands (bare floor or
+    hopper steel is not grain).
+
+    At 8-10 m one cell's height is off by centimetres; the highest of thousands of cells is
+    then the highest noise, not the highest grain, and a surface smoothed enough to hide the
+    noise has a heap's apex rounded off. So the extremes are located on the measured grain
+    smoothed at LEVEL_SCALE_M, and read from a cone fitted to the unsmoothed cells around
+    them (LEVEL_FIT_RADIUS_M): a heap's apex and a crater's bottom are cones. They are looked
+    for `off_wall` only: the grain at the foot of the wall is seen from across the bin, at the
+    longest range, where the wall's noise was cut away; it reads ~0.1 m off."""
+    region = (grid.inside > 0) & np.isfinite(heights)
+    scale = max(LEVEL_SCALE_M / grid.step, 1.0)
+    depth = masked_smooth(np.nan_to_num(counted), region, scale)
+    grain = region & (np.nan_to_num(depth) > GRAIN_MIN_DEPTH_M)
+    if not np.any(grain):
+        grain = region
+    measured = grain & observed & off_wall
+    if not np.any(measured):
+        measured = grain
+    smooth = masked_smooth(heights, region, scale)
+    ranked = np.where(measured & np.isfinite(smooth), smooth, np.nan)
+    top = np.unravel_index(int(np.nanargmax(ranked)), ranked.shape)
+    low = np.unravel_index(int(np.nanargmin(ranked)), ranked.shape)
+    weights = grid.inside[grain]
+    mean = float(np.sum(heights[grain] * weights) / np.sum(weights))
+    return Levels(
+        _fitted_peak(grid, heights, measured, (int(low[0]), int(low[1])), LEVEL_FIT_RADIUS_M),
+        mean,
+        _fitted_peak(grid, heights, measured, (int(top[0]), int(top[1])), LEVEL_FIT_RADIUS_M),
+    )

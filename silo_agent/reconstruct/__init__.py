@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -24,17 +24,20 @@ from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.smooth import masked_smooth
 from silo_agent.grid.volume import (
     DENOISE_SCALE_M,
+    LEVEL_WALL_BAND_M,
     Levels,
     base_plane,
     base_surface,
     counted_heights,
+    grain_levels,
     integrate_counted,
     surface_levels,
 )
-from silo_agent.reconstruct.cells import clustered_means, voxel_downsample
+from silo_agent.reconstruct.cells import EPS_MAX_M, clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
+from silo_agent.reconstruct.walls import wall_free, wall_rays, with_points
 from silo_agent.scan import Scan, Site
 
 __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
@@ -42,6 +45,10 @@ __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
 EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted_cells)
 EDGE_DENSITY_RATIO = 0.5
 SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spikes)
+BIN_DENOISE_SCALE_M = 0.5  # bins: noise blobs of ~0.2 m at 8-10 m must not be clipped
+BIN_DENOISE_SCALE_M = 0.5  # bins: noise blobs of ~0.2 m at 8-10 m must not be clipped
+BIN_EPS_MAX_M = 1.0  # a bin's grain is seen at up to ~10 m, with up to ~0.5 m of noise
+WALL_PASS_STEP_M = 0.10  # grid of the first pass that finds the grain height at the wall
 
 
 @dataclass
@@ -65,6 +72,22 @@ class Reconstruction:
     parameters: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     registration: dict[str, PairResidual] = field(default_factory=dict)  # reconstruct/residual
+    capacity_m3: float | None = None  # a bin's: bottom to eave over the region
+    reference_z: float | None = None  # a bin's headspace reference: eave or roof peak
+
+    def bin_figures(self) -> dict[str, float | None]:
+        """Fill ratio and headspace (to the highest grain, to the mean surface) of a bin."""
+        full = self.capacity_m3
+        fill = self.volume_m3 / full if self.volume_m3 is not None and full else None
+        top = mean = None
+        if self.reference_z is not None and self.surface is not None:
+            top, mean = self.reference_z - self.surface.max, self.reference_z - self.surface.mean
+        return {
+            "capacity_m3": full,
+            "fill_ratio": fill,
+            "headspace_m": top,
+            "headspace_mean_m": mean,
+        }
 
     def describe(self, findings: Sequence[str] = ()) -> str:
         """A few human-readable lines; `findings` (what detection found) go before the time."""
@@ -81,6 +104,14 @@ class Reconstruction:
                 f"level     min {s.min - f:.3f}  mean {s.mean - f:.3f}  max {s.max - f:.3f}"
                 " m above floor"
             )
+        figures = self.bin_figures()
+        if figures["capacity_m3"] is not None:
+            fill, top = figures["fill_ratio"], figures["headspace_m"]
+            lines.append(
+                f"bin       capacity {figures['capacity_m3']:.1f} m³"
+                + (f"   fill {fill * 100:.1f} %" if fill is not None else "")
+                + (f"   headspace {top:.2f} m" if top is not None else "")
+            )
         lines.append("valid     yes" if self.valid else f"valid     NO: {self.invalid_reason}")
         lines.extend(findings)
         total = sum(self.timings_s.values())
@@ -91,11 +122,12 @@ class Reconstruction:
 def site_from_config(config: Config) -> Site:
     s = config.silo
     return Site(
-        region=np.asarray(s.region, dtype=float),
+        region=s.region_polygon(),
         floor_z=s.floor_z,
         ceiling_z=s.ceiling_z,
         base=s.base,
         bulk_density_t_m3=s.bulk_density_t_m3,
+        bin=s.bin_shape(),
     )
 
 
@@ -181,6 +213,7 @@ def reconstruct(
     `exclude` lists silo-frame discs (x, y, radius) whose points are not grain (a leveling
     robot found by the detector): they are dropped after fusing and the fill covers the hole.
     `calibration` sets how the cameras' height disagreement is measured (reconstruct/residual).
+    A site with a known bin (`site.bin`) first loses its wall points (reconstruct/walls.py).
 
     Parameters
     ----------
@@ -208,6 +241,41 @@ def reconstruct(
         The region at this grid step is past the grid's cell limit.
     """
     site = site or scan.site
+    if site.bin is None:
+        return _reconstruct(scan, settings, site, exclude, calibration)
+    started = time.perf_counter()
+    rays = [wall_rays(c, site.bin, settings.depth_noise_factor) for c in scan.cameras]
+    clear = [with_points(c, r.clear_of_wall) for c, r in zip(scan.cameras, rays, strict=True)]
+    rough_settings = settings.model_copy(
+        update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
+    )
+    rough = _reconstruct(replace(scan, cameras=clear), rough_settings, site, exclude, calibration)
+    if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
+        cameras, dropped = (
+            clear,
+            sum(len(c.points) - len(k.points) for c, k in zip(scan.cameras, clear, strict=True)),
+        )
+    else:
+        grid = Grid.over(site.region, rough_settings.grid_step_m)
+        cameras, dropped = wall_free(
+            scan.cameras, rays, site.bin, grid, rough.heightmap.heights.astype(np.float64)
+        )
+    walls_s = time.perf_counter() - started
+    result = _reconstruct(replace(scan, cameras=cameras), settings, site, exclude, calibration)
+    result.timings_s = {"walls": walls_s, **result.timings_s}
+    result.points["raw"] = sum(len(c.points) for c in scan.cameras)
+    result.points["wall"] = dropped
+    return result
+
+
+def _reconstruct(
+    scan: Scan,
+    settings: ReconstructionConfig,
+    site: Site,
+    exclude: Sequence[tuple[float, float, float]],
+    calibration: CalibrationConfig | None,
+) -> Reconstruction:
+    """`reconstruct` on clouds that hold no wall."""
     clock = _Clock()
     grid = Grid.over(site.region, settings.grid_step_m)
     fused = fuse_and_crop(scan.cameras, site, grid)
@@ -248,6 +316,7 @@ def reconstruct(
         settings.cluster_eps_m,
         settings.cluster_min_points,
         settings.max_clusters,
+        BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M,
     )
     clock.lap("clustered_means")
     observed = np.isfinite(cells.height) & (grid.inside > 0)
@@ -286,8 +355,13 @@ def reconstruct(
         filled = _slope_corrected(grid, filled, cells.centroid_x, cells.centroid_y, observed)
         clock.lap("slope_correction")
     heights = np.where(grid.inside > 0, filled, np.nan)
-    base = base_surface(grid, heights, site.base, site.floor_z)
-    counted = counted_heights(grid, heights, base, DENOISE_SCALE_M)
+    if site.bin is not None and site.base == "floor":
+        base = site.bin.bottom(*grid.centres())  # a hopper's cone counts, a sloped floor too
+    else:
+        base = base_surface(grid, heights, site.base, site.floor_z)
+    counted = counted_heights(
+        grid, heights, base, BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
+    )
     volume = integrate_counted(grid, counted)
     clock.lap("volume")
     result = _result(
@@ -346,8 +420,17 @@ def _result(
             captured_at=scan.captured_at,
         )
         if np.any(np.isfinite(heights)):
-            surface = surface_levels(grid, heights)
+            if site.bin is not None and counted is not None:
+                off_wall = site.bin.wall_distance(*grid.centres()) > LEVEL_WALL_BAND_M
+                surface = grain_levels(grid, heights, counted, observed, off_wall)
+            else:
+                surface = surface_levels(grid, heights)
     density = site.bulk_density_t_m3
+    capacity = reference = None
+    if site.bin is not None:
+        depth = site.bin.eave_z - site.bin.bottom(*grid.centres())
+        capacity = float(np.sum(depth * grid.inside) * grid.cell_area)
+        reference = site.bin.reference_z
     return Reconstruction(
         scan_id=scan.scan_id,
         method=settings.method,
@@ -368,4 +451,6 @@ def _result(
         },
         parameters=parameters,
         timings_s=clock.laps,
+        capacity_m3=capacity,
+        reference_z=reference,
     )

@@ -237,8 +237,10 @@ def clustered_means(
     eps_m: float | None,
     min_points: int | None,
     max_clusters: int,
+    eps_max_m: float = EPS_MAX_M,
 ) -> CellHeights:
-    """`moments` are those of (points, camera, cell): centroids and noise come from them."""
+    """`moments` are those of (points, camera, cell): centroids and noise come from them.
+    `eps_max_m` caps the adapted eps (a bin seen at 10 m needs more than a bay at 3 m)."""
     rows, cols = grid.shape
     n_cells = rows * cols
     if len(points) == 0:
@@ -255,7 +257,7 @@ def clustered_means(
         squares = moments.per_cell(moments.sum_zz)[crowded]
         variance = np.maximum(squares - total * total / count, 0.0) / (count - 1)
         typical = float(np.sqrt(median(variance))) if np.any(crowded) else 0.0
-        eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, EPS_MAX_M))
+        eps_m = float(np.clip(EPS_NOISE_FACTOR * typical, EPS_MIN_M, eps_max_m))
         del crowded, count, total, squares, variance
 
     n_cams = moments.n_cams

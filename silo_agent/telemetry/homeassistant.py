@@ -138,6 +138,27 @@ def discovery_config(
     if expire_after_s:
         for key in ("valid", "degraded"):
             components[key]["expire_after"] = expire_after_s
+    components["fill"] = _reading(
+        f"{uid}_fill",
+        "Fill",
+        _when_valid(
+            "(value_json.fill_ratio * 100) | round(1) "
+            "if value_json.fill_ratio is not none else None"
+        ),
+        "%",
+        None,
+        volume,
+        expire_after_s,
+    )
+    components["headspace"] = _reading(
+        f"{uid}_headspace",
+        "Headspace",
+        _when_valid("value_json.headspace_m"),
+        "m",
+        "distance",
+        volume,
+        expire_after_s,
+    )
     for key in ("min", "mean", "max"):
         components[f"level_{key}"] = _reading(
             f"{uid}_level_{key}",

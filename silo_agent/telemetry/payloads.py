@@ -137,6 +137,16 @@ class VolumePayload(_Payload):
     level: Stats = Field(description="grain level, metres above the floor")
     valid: bool
     degraded: bool
+    capacity_m3: float | None = Field(
+        default=None, description="bin: volume from the bottom (hopper included) to the eave"
+    )
+    fill_ratio: float | None = Field(default=None, description="bin: volume_m3 / capacity_m3")
+    headspace_m: float | None = Field(
+        default=None, description="bin: eave (or roof peak) down to the highest grain"
+    )
+    headspace_mean_m: float | None = Field(
+        default=None, description="bin: eave (or roof peak) down to the mean grain surface"
+    )
 
 
 class ScanPayload(_Payload):
@@ -154,6 +164,10 @@ class ScanPayload(_Payload):
     valid: bool
     invalid_reason: str | None
     degraded: bool
+    capacity_m3: float | None = None
+    fill_ratio: float | None = None
+    headspace_m: float | None = None
+    headspace_mean_m: float | None = None
     cameras: CamerasUsed
     piles: list[dict[str, Any]]
     timings: dict[str, float]
@@ -227,6 +241,10 @@ def volume_payload(env: Envelope, summary: ScanSummary) -> VolumePayload:
         level=_level(summary),
         valid=summary.valid,
         degraded=summary.degraded,
+        capacity_m3=summary.capacity_m3,
+        fill_ratio=summary.fill_ratio,
+        headspace_m=summary.headspace_m,
+        headspace_mean_m=summary.headspace_mean_m,
     )
 
 
@@ -248,6 +266,10 @@ def scan_payload(env: Envelope, summary: ScanSummary) -> ScanPayload:
         valid=summary.valid,
         invalid_reason=summary.invalid_reason,
         degraded=summary.degraded,
+        capacity_m3=summary.capacity_m3,
+        fill_ratio=summary.fill_ratio,
+        headspace_m=summary.headspace_m,
+        headspace_mean_m=summary.headspace_mean_m,
         cameras=CamerasUsed(
             used=list(summary.cameras.used),
             failed=[FailedCamera(serial=f.serial, error=f.error) for f in summary.cameras.failed],

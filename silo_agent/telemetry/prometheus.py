@@ -46,6 +46,16 @@ class Metrics:
             "Mass of the last valid scan (volume x silo.bulk_density_t_m3)",
             registry=r,
         )
+        self.fill = Gauge(
+            "silo_agent_last_fill_ratio",
+            "Volume of the last valid scan over the bin's capacity (silo.bin)",
+            registry=r,
+        )
+        self.headspace = Gauge(
+            "silo_agent_last_headspace_meters",
+            "Eave (or roof peak) down to the highest grain, last valid scan (silo.bin)",
+            registry=r,
+        )
         self.coverage = Gauge(
             "silo_agent_last_coverage_ratio",
             "Observed share of the region in the last scan",
@@ -100,6 +110,10 @@ class Metrics:
             self.last_valid_scan.set(captured)
             if summary.mass_t is not None:
                 self.mass.set(summary.mass_t * 1000.0)
+            if summary.fill_ratio is not None:
+                self.fill.set(summary.fill_ratio)
+            if summary.headspace_m is not None:
+                self.headspace.set(summary.headspace_m)
 
     def restore_results(self, newest: ScanSummary, newest_valid: ScanSummary | None) -> None:
         """At start, from the audit cache: the gauges as the last run left them (the newest

@@ -39,6 +39,10 @@ RESULT_METRICS: dict[str, int] = {
     "Inventory/Coverage": pb.Double,
     "Inventory/Valid": pb.Boolean,
     "Inventory/Degraded": pb.Boolean,
+    "Inventory/Capacity m3": pb.Double,
+    "Inventory/Fill Ratio": pb.Double,
+    "Inventory/Headspace m": pb.Double,
+    "Inventory/Headspace Mean m": pb.Double,
     "Scan/Last Id": pb.String,
     "Scan/Time": pb.DateTime,
 }
@@ -188,6 +192,10 @@ def _result_values(summary: Mapping[str, Any]) -> tuple[dict[str, Any], int]:
         "Inventory/Coverage": summary.get("coverage"),
         "Inventory/Valid": summary.get("valid"),
         "Inventory/Degraded": summary.get("degraded", False),
+        "Inventory/Capacity m3": summary.get("capacity_m3"),
+        "Inventory/Fill Ratio": summary.get("fill_ratio"),
+        "Inventory/Headspace m": summary.get("headspace_m"),
+        "Inventory/Headspace Mean m": summary.get("headspace_mean_m"),
         "Scan/Last Id": summary["scan_id"],
         "Scan/Time": captured,
     }

@@ -1,0 +1,285 @@
+"""Round bins end to end against the simulator's exact truth: the wall never read as grain,
+the hopper counted, fill ratio and headspace; the bin's geometry in the config (exit 78 naming
+the key) and in scan.json (silo-scan/2, exit 65); the new figures on every output."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from silo_agent.analysis.summary import ScanSummary
+from silo_agent.config import ReconstructionConfig, parse_config
+from silo_agent.reconstruct import Reconstruction, reconstruct, site_from_config
+from silo_agent.reconstruct.walls import wall_rays
+from silo_agent.scan import read_scan, write_scan
+from silo_agent.sim.camera import NoiseModel
+from silo_agent.sim.scenes import make_scene
+from silo_agent.sim.simulate import SimRig, simulate
+from silo_agent.telemetry.homeassistant import discovery_config
+from silo_agent.telemetry.payloads import Envelope, volume_payload
+from silo_agent.telemetry.sparkplug import RESULT_METRICS
+from tests.support.cli import run_cli
+
+FOUR = ["A1", "A3", "A5", "A7"]
+SETTINGS = ReconstructionConfig(grid_step_m=0.05)
+
+
+def figures(result: Reconstruction) -> dict:
+    """The published figures of a reconstruction (analysis.summary's, without detection)."""
+    s = result.surface
+    assert s is not None
+    floor = result.floor_z
+    level = {"min": s.min - floor, "mean": s.mean - floor, "max": s.max - floor}
+    return {"volume_m3": result.volume_m3, "level": level, "points": result.points} | (
+        result.bin_figures()
+    )
+
+
+def _read(name: str, views: list[str], site_without_bin: bool = False) -> tuple[dict, dict]:
+    scene = make_scene(name)
+    scan = simulate(scene, views, seed=0)
+    site = replace(scan.site, bin=None) if site_without_bin else None
+    return figures(reconstruct(scan, SETTINGS, site=site)), scan.extra["truth"]
+
+
+@pytest.fixture(scope="module")
+def crater() -> tuple[dict, dict]:
+    return _read("bin-crater", FOUR)
+
+
+@pytest.fixture(scope="module")
+def heap() -> tuple[dict, dict]:
+    return _read("bin-heap", FOUR)
+
+
+def test_crater_bin_volume_and_both_levels_match_the_truth(crater: tuple[dict, dict]) -> None:
+    got, truth = crater
+    assert got["volume_m3"] == pytest.approx(truth["volume_m3"], rel=0.01)
+    assert got["level"]["max"] == pytest.approx(truth["level_max_m"], abs=0.05)
+    assert got["level"]["min"] == pytest.approx(truth["level_min_m"], abs=0.05)
+    assert got["fill_ratio"] == pytest.approx(truth["fill_ratio"], abs=0.005)
+    assert got["capacity_m3"] == pytest.approx(truth["capacity_m3"], rel=1e-3)
+    assert got["headspace_m"] == pytest.approx(truth["headspace_m"], abs=0.05)
+    assert got["headspace_mean_m"] == pytest.approx(truth["headspace_mean_m"], abs=0.02)
+
+
+def test_heap_bin_reads_the_apex_not_the_wall(heap: tuple[dict, dict]) -> None:
+    got, truth = heap
+    assert got["volume_m3"] == pytest.approx(truth["volume_m3"], rel=0.01)
+    assert got["level"]["max"] == pytest.approx(truth["level_max_m"], abs=0.05)
+    assert got["headspace_m"] == pytest.approx(truth["headspace_m"], abs=0.05)
+    assert got["points"]["wall"] > 0.3 * got["points"]["raw"]  # the far wall fills the views
+
+
+def test_without_the_bin_geometry_the_same_scan_is_worse() -> None:
+    """What the engine did before it knew the wall: the eps cap and the wall points."""
+    got, truth = _read("bin-heap", ["A1", "A5"], site_without_bin=True)
+    assert abs(got["volume_m3"] / truth["volume_m3"] - 1) > 0.03
+    assert got["fill_ratio"] is None and got["headspace_m"] is None
+
+
+def test_two_eave_cameras_stay_within_two_and_a_half_percent() -> None:
+    got, truth = _read("bin-crater", ["A1", "A5"])
+    assert got["volume_m3"] == pytest.approx(truth["volume_m3"], rel=0.025)
+
+
+def test_hopper_bin_counts_the_cone_under_the_floor() -> None:
+    got, truth = _read("hopper-heap", FOUR)
+    assert got["volume_m3"] == pytest.approx(truth["volume_m3"], rel=0.015)
+    assert got["level"]["max"] == pytest.approx(truth["level_max_m"], abs=0.05)
+    assert got["fill_ratio"] == pytest.approx(truth["fill_ratio"], abs=0.005)
+
+
+def test_surface_inside_the_hopper_is_measured_there() -> None:
+    got, truth = _read("hopper-low", ["A1", "A5"])
+    assert truth["level_max_m"] < 0  # the whole surface is under the floor plane
+    assert got["level"]["max"] < 0 and got["level"]["min"] < -2.0
+    assert got["level"]["min"] == pytest.approx(truth["level_min_m"], abs=0.15)
+    # the hopper holds all of it: a flat floor at the floor plane would count nothing
+    assert got["volume_m3"] == pytest.approx(truth["volume_m3"], rel=0.05)
+
+
+def test_noise_free_wall_pixels_are_all_dropped_and_grain_kept() -> None:
+    """The ray test on exact depths: every point the wall gave goes, nearly all grain stays."""
+    scene = make_scene("bin-heap")
+    quiet = NoiseModel(subpixel=0.0, hole_fraction=0.0, speckle_fraction=0.0, max_depth_m=30.0)
+    scan = simulate(scene, ["A1"], seed=0, rig=SimRig(scene, noise=quiet), resolution=(424, 240))
+    shape = scene.bin
+    assert shape is not None
+    cloud = scan.cameras[0]
+    p = cloud.points_in_silo()
+    on_wall = np.hypot(p[:, 0], p[:, 1]) > 5.0 - 1e-3
+    ray = wall_rays(cloud, shape, 2.5)
+    grain_z = scene.height(ray.wall_x, ray.wall_y)
+    said_wall = ray.wall_z > grain_z  # judged with the exact grain height at the wall
+    assert np.all(said_wall[on_wall & (p[:, 2] > grain_z + 0.01)])
+    assert not np.any(said_wall[~on_wall])
+    # the engine judges with its own first-pass grain height: all but the crease goes
+    result: Reconstruction = reconstruct(scan, SETTINGS)
+    assert result.points["wall"] >= on_wall.sum() * 0.97
+    assert result.points["wall"] <= on_wall.sum() + 0.02 * (~on_wall).sum()
+    assert result.surface is not None
+    assert result.surface.max == pytest.approx(scene.truth()["level_max_m"], abs=0.03)
+
+
+# ---------------------------------------------------------------- config
+
+BIN_CONFIG = """
+[silo]
+id = "bin-1"
+floor_z = 0.0
+bulk_density_t_m3 = 0.77
+
+[silo.bin]
+diameter_m = 10.0
+eave_height_m = 7.0
+floor = "hopper"
+hopper_angle_deg = 45
+outlet_diameter_m = 0.4
+
+[[cameras]]
+serial = "A"
+source = "realsense"
+extrinsic = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]
+"""
+
+
+def test_config_bin_defaults_the_region_to_the_wall_and_knows_its_hopper() -> None:
+    import tomllib
+
+    config = parse_config(tomllib.loads(BIN_CONFIG), "agent.toml")
+    site = site_from_config(config)
+    assert site.bin is not None
+    assert site.bin.hopper_depth_m == pytest.approx(4.8)
+    radii = np.hypot(site.region[:, 0], site.region[:, 1])
+    assert radii.min() == pytest.approx(5.0, abs=1e-3)
+    assert site.bin.reference_z == 7.0
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "fragments"),
+    [
+        ("outlet_diameter_m = 0.4", "outlet_diameter_m = 12.0", ["silo.bin", "outlet_diameter_m"]),
+        ("hopper_angle_deg = 45", "", ["silo.bin", "hopper_depth_m or hopper_angle_deg"]),
+        ("eave_height_m = 7.0", "eave_height_m = -1.0", ["silo.bin.eave_height_m"]),
+        ("floor_z = 0.0", "floor_z = 0.0\nregion = [[0, 0], [9, 0], [0, 9]]", ["region", "wall"]),
+        ("diameter_m = 10.0", "", ["silo.bin", "diameter_m"]),
+    ],
+)
+def test_contradicting_bin_config_exits_78_naming_the_key(
+    tmp_path: Path, old: str, new: str, fragments: list[str]
+) -> None:
+    path = tmp_path / "agent.toml"
+    path.write_text(BIN_CONFIG.replace(old, new))
+    result = run_cli("check-config", str(path))
+    assert result.returncode == 78, result.stderr
+    assert "Traceback" not in result.stderr
+    for fragment in fragments:
+        assert fragment in result.stderr
+
+
+# ---------------------------------------------------------------- scan.json
+
+
+@pytest.fixture(scope="module")
+def bin_scan_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    scene = make_scene("hopper-heap")
+    scan = simulate(scene, ["A1", "A5"], seed=0, resolution=(424, 240))
+    return write_scan(scan, tmp_path_factory.mktemp("bins") / "scan")
+
+
+def test_scan_with_a_bin_is_silo_scan_2_and_reads_back(bin_scan_dir: Path) -> None:
+    manifest = json.loads((bin_scan_dir / "scan.json").read_text())
+    assert manifest["format"] == "silo-scan/2"
+    assert manifest["site"]["bin"]["floor"] == "hopper"
+    back = read_scan(bin_scan_dir)
+    assert back.site.bin == make_scene("hopper-heap").bin
+
+
+def test_process_json_carries_capacity_fill_and_headspace(bin_scan_dir: Path) -> None:
+    result = run_cli("process", str(bin_scan_dir), "--json", "--grid-step", "0.1")
+    assert result.returncode == 0, result.stderr
+    out = json.loads(result.stdout)
+    truth = make_scene("hopper-heap").truth()
+    assert out["capacity_m3"] == pytest.approx(truth["capacity_m3"], rel=2e-3)
+    assert out["fill_ratio"] == pytest.approx(out["volume_m3"] / out["capacity_m3"])
+    assert out["headspace_m"] == pytest.approx(6.0 - out["level"]["max"])
+
+
+@pytest.mark.parametrize(
+    ("bin_change", "fragments"),
+    [
+        ({"outlet_diameter_m": 20.0}, ["site", "bin.outlet_diameter_m"]),
+        ({"eave_z": -2.0}, ["site", "bin.eave_z"]),
+        ({"diameter_m": 2.0}, ["site", "region", "outside the bin's wall"]),
+    ],
+)
+def test_contradicting_bin_in_scan_json_exits_65(
+    bin_scan_dir: Path, tmp_path: Path, bin_change: dict, fragments: list[str]
+) -> None:
+    import shutil
+
+    copy = tmp_path / "scan"
+    shutil.copytree(bin_scan_dir, copy)
+    manifest = json.loads((copy / "scan.json").read_text())
+    manifest["site"]["bin"].update(bin_change)
+    (copy / "scan.json").write_text(json.dumps(manifest))
+    result = run_cli("process", str(copy), "--json")
+    assert result.returncode == 65
+    assert "Traceback" not in result.stderr
+    for fragment in fragments:
+        assert fragment in result.stderr
+
+
+def test_version_1_scans_still_read(bin_scan_dir: Path, tmp_path: Path) -> None:
+    import shutil
+
+    copy = tmp_path / "scan"
+    shutil.copytree(bin_scan_dir, copy)
+    manifest = json.loads((copy / "scan.json").read_text())
+    manifest["format"] = "silo-scan/1"
+    del manifest["site"]["bin"]
+    (copy / "scan.json").write_text(json.dumps(manifest))
+    back = read_scan(copy)
+    assert back.site.bin is None
+    assert len(back.cameras) == 2
+
+
+# ---------------------------------------------------------------- outputs
+
+SUMMARY = {
+    "scan_id": "s1",
+    "captured_at": "2026-01-01T00:00:00Z",
+    "volume_m3": 100.0,
+    "mass_t": 77.0,
+    "coverage": 0.9,
+    "grid_step_m": 0.05,
+    "level": {"min": 1.0, "mean": 1.5, "max": 2.0},
+    "valid": True,
+    "capacity_m3": 400.0,
+    "fill_ratio": 0.25,
+    "headspace_m": 5.0,
+    "headspace_mean_m": 5.5,
+}
+
+
+def test_volume_payload_and_sparkplug_and_home_assistant_carry_the_bin_figures() -> None:
+    env = Envelope.new(1)
+    payload = volume_payload(env, ScanSummary.from_json(SUMMARY))
+    assert (payload.fill_ratio, payload.capacity_m3, payload.headspace_m) == (0.25, 400.0, 5.0)
+    for metric in ("Capacity m3", "Fill Ratio", "Headspace m", "Headspace Mean m"):
+        assert f"Inventory/{metric}" in RESULT_METRICS
+    _topic, raw = discovery_config(
+        discovery_prefix="homeassistant",
+        base_topic="silo/bin-1",
+        silo_id="bin-1",
+        version="0",
+        alarm_types=[],
+    )
+    fill = json.loads(raw)["cmps"]["fill"]
+    assert fill["unit_of_measurement"] == "%"
+    assert "value_json.fill_ratio * 100" in fill["value_template"]
