@@ -342,9 +342,7 @@ class Pages:
 
 
 def _region(config: Config) -> Any:
-    import numpy as np
-
-    return np.asarray(config.silo.region, dtype=float)
+    return config.silo.region_polygon()  # `region`, or a bin's wall
 
 
 def _live_meta(payload: bytes) -> dict[str, Any]:
