@@ -283,3 +283,16 @@ def test_volume_payload_and_sparkplug_and_home_assistant_carry_the_bin_figures()
     fill = json.loads(raw)["cmps"]["fill"]
     assert fill["unit_of_measurement"] == "%"
     assert "value_json.fill_ratio * 100" in fill["value_template"]
+
+
+def test_polygon_and_round_walls_answer_rays_and_distances_alike() -> None:
+    from silo_agent.grid.bin_shape import BinShape
+
+    square = BinShape(floor_z=0.0, eave_z=5.0, wall=((-5, -5), (5, -5), (5, 5), (-5, 5)))
+    round_bin = BinShape(floor_z=0.0, eave_z=5.0, diameter_m=10.0)
+    dx, dy = np.array([1.0, 1.0, 0.0, 2.0]), np.array([0.0, 1.0, -1.0, 0.0])
+    assert np.allclose(square.ray_wall_depth(0.0, 0.0, dx, dy), [5.0, 5.0, 5.0, 2.5])
+    assert np.allclose(round_bin.ray_wall_depth(0.0, 0.0, dx, dy), [5.0, 5 / np.sqrt(2), 5.0, 2.5])
+    assert np.allclose(square.wall_distance(np.array([4.0, 6.0]), np.array([0.0, 0.0])), [1, -1])
+    assert square.problems() == [] and round_bin.problems() == []
+    assert square.region_problem(np.array([[0.0, 0.0], [6.0, 0.0], [0.0, 4.0]])) is not None

@@ -120,14 +120,10 @@ class BinShape:
         inside = points_in_polygon(np.ravel(x), np.ravel(y), wall).reshape(gap.shape)
         return np.where(inside, gap, -gap)
 
-    def ray_wall_depth(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Ray parameter where each ray (origin inside the bin) leaves the wall, horizontally.
-
-        `directions` need not be unit; the result is in their units (depth, for a camera's
-        z = 1 rays). Rays with no horizontal component get inf.
-        """
-        ox, oy = origins[..., 0], origins[..., 1]
-        dx, dy = directions[..., 0], directions[..., 1]
+    def ray_wall_depth(self, ox: float, oy: float, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+        """Ray parameter where rays from (ox, oy) inside the bin, horizontal directions
+        (dx, dy), leave through the wall. The directions need not be unit; the result is in
+        their units (depth, for a camera's z = 1 rays). Rays with no horizontal part: inf."""
         if self.diameter_m is not None:
             px, py = ox - self.centre[0], oy - self.centre[1]
             a = dx * dx + dy * dy

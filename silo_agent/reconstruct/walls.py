@@ -82,13 +82,17 @@ def smoothed_depth(
 def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallRays:
     """Where each point's ray meets the wall, and the first pass's verdict on it."""
     rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
-    z = cloud.points[:, 2].astype(np.float64)
+    z = cloud.points[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        rays = cloud.points.astype(np.float64) / z[:, None]  # camera z = 1: parameter = depth
-    directions = rays @ rotation.T
-    depth = shape.ray_wall_depth(origin[None, :], directions)
-    hit = origin + directions * np.where(np.isfinite(depth), depth, 0.0)[:, None]
-    wall_z = np.where(np.isfinite(depth), hit[:, 2], -np.inf)
+        inverse = np.float32(1.0) / z  # the ray through a point, scaled to camera z = 1
+    across, down = cloud.points[:, 0] * inverse, cloud.points[:, 1] * inverse
+    # column by column: a (N, 3) @ (3, 3) product is BLAS with an inner dimension of 3, slow
+    dx, dy, dz = (r[0] * across + r[1] * down + r[2] for r in rotation.astype(np.float32))
+    depth = shape.ray_wall_depth(float(origin[0]), float(origin[1]), dx, dy)
+    finite = np.isfinite(depth)
+    reach = np.where(finite, depth, 0.0)
+    wall_x, wall_y = origin[0] + dx * reach, origin[1] + dy * reach
+    wall_z = np.where(finite, origin[2] + dz * reach, -np.inf)
     smoothed = smoothed_depth(cloud)
     if smoothed is None:
         clear = np.ones(len(z), dtype=bool)
@@ -97,7 +101,7 @@ def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallR
         rms = depth_rms_m(np.where(np.isfinite(depth), depth, 0.0), focal, noise_factor)
         margin = np.maximum(FIRST_PASS_MIN_MARGIN_M, FIRST_PASS_SIGMAS * SMOOTHED_NOISE_SHARE * rms)
         clear = smoothed < depth - margin
-    return WallRays(depth, hit[:, 0], hit[:, 1], wall_z, clear)
+    return WallRays(depth, wall_x, wall_y, wall_z, clear)
 
 
 def with_points(cloud: CameraCloud, keep: np.ndarray) -> CameraCloud:
