@@ -296,3 +296,23 @@ def test_polygon_and_round_walls_answer_rays_and_distances_alike() -> None:
     assert np.allclose(square.wall_distance(np.array([4.0, 6.0]), np.array([0.0, 0.0])), [1, -1])
     assert square.problems() == [] and round_bin.problems() == []
     assert square.region_problem(np.array([[0.0, 0.0], [6.0, 0.0], [0.0, 4.0]])) is not None
+
+
+def test_walled_bay_with_its_walls_declared_reads_the_flat_level_not_the_walls() -> None:
+    """The issue's bay: region on the walls read level.max 1.9 m over flat grain at 1.2 m."""
+    from silo_agent.grid.bin_shape import BinShape
+    from silo_agent.sim.scenes import square
+
+    scene = make_scene("flat")
+    scan = simulate(scene, FOUR, seed=1)
+    walls = replace(scan.site, region=square(3.0))
+    declared = replace(
+        walls, bin=BinShape(floor_z=0.0, eave_z=3.0, wall=tuple(map(tuple, square(3.0))))
+    )
+    before = reconstruct(scan, SETTINGS, site=walls)
+    after = reconstruct(scan, SETTINGS, site=declared)
+    assert before.surface is not None and after.surface is not None
+    assert before.surface.max > 1.5  # the wall read as grain
+    assert after.surface.max == pytest.approx(1.2, abs=0.05)
+    assert after.surface.min == pytest.approx(1.2, abs=0.05)
+    assert after.volume_m3 == pytest.approx(scene.volume_m3, rel=0.005)
