@@ -484,8 +484,13 @@ def _bin_reading(scan: Scan, method: str, workdir: Path) -> tuple[dict | None, f
         return {"volume_m3": volume}, time.perf_counter() - start
     settings = ReconstructionConfig.model_validate({"grid_step_m": BIN_STEP_M})
     site = replace(scan.site, bin=None) if method != "bicm" else None
-    summary = reconstruct(scan, settings, site=site).summary()
-    return summary, time.perf_counter() - start
+    result = reconstruct(scan, settings, site=site)
+    seconds = time.perf_counter() - start
+    level = None
+    if result.surface is not None:
+        s, floor = result.surface, result.floor_z
+        level = {"min": s.min - floor, "mean": s.mean - floor, "max": s.max - floor}
+    return {"volume_m3": result.volume_m3, "level": level, **result.bin_figures()}, seconds
 
 
 def _error(value: float | None, truth: float, scale: float = 1.0) -> float | None:
