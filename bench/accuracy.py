@@ -4,7 +4,7 @@ Methods (alpha, poisson, hull, rectangle, bicm, and CloudCompare's 2.5D volume) 
 view combinations x scenes x seeds x calibration errors; every volume is compared with the
 scene's exact volume. Writes a Markdown report and a plot of error against grid step.
 
-`--bins`: round bins instead (bench/results/accuracy-bins.md): each bin scene seen by 2, 4
+`--bins`: round bins instead (bench/results/accuracy-round-bins.md): each bin scene seen by 2, 4
 and 8 eave cameras, the region the wall circle; bicm with the bin's geometry, bicm without
 it (the engine before it knew walls) and CloudCompare, against the scene's truth: volume,
 highest and lowest grain, fill ratio and headspace.
@@ -631,7 +631,7 @@ def bins_main(args: argparse.Namespace) -> None:
     print(f"wrote {out} ({len(rows)} readings, {elapsed / 60:.1f} min)")
 
 
-BIN_OUT = Path("bench/results/accuracy-bins.md")
+BIN_OUT = Path("bench/results/accuracy-round-bins.md")
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -696,7 +696,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--bins",
         action="store_true",
-        help="round bins instead of the paper's scenes (writes bench/results/accuracy-bins.md)",
+        help="round bins instead (writes bench/results/accuracy-round-bins.md)",
     )
     p.add_argument(
         "--bin-scenes", type=lambda s: s.split(","), default=list(BIN_SCENES), metavar="A,B"
