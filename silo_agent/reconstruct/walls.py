@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 
 from silo_agent.grid.bin_shape import BinShape
-from silo_agent.grid.filters import box_mean
 from silo_agent.grid.grid import Grid
 from silo_agent.scan import CameraCloud
 
@@ -73,7 +73,7 @@ def smoothed_depth(
     image[0, v[on_image], u[on_image]] = 1.0 / z[on_image]
     image[1, v[on_image], u[on_image]] = 1.0
     size = max(3, 2 * round(window_at_848 * width / 848 / 2) + 1)
-    total, count = box_mean(image, size)
+    total, count = ndimage.uniform_filter(image, size=(1, size, size), mode="constant")
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = count / total
     return np.where(on_image, mean[v, u], z)
