@@ -9,19 +9,26 @@ from pydantic import (
 )
 
 from silo_agent.base.choices import DEFAULT_GRID_STEP_M
+from silo_agent.base.limits import MAX_DURATION_S, MIN_LIVE_RATE_HZ
 from silo_agent.config.base import Strict
 
 
 class LiveConfig(Strict):
     """`[live]`: the live height map a leveling robot follows (`P/cmd/live`, `P/heightmap/live`)."""
 
-    rate_hz: float = Field(default=2.0, gt=0, le=10, description="maps per second, at most")
+    rate_hz: float = Field(
+        default=2.0, ge=MIN_LIVE_RATE_HZ, le=10, description="maps per second, at most"
+    )
     grid_step_m: float = Field(default=DEFAULT_GRID_STEP_M, gt=0.005, le=0.5)
     cameras: list[str] | None = Field(
         default=None, description="serials of the cameras used; default all [[cameras]]"
     )
-    duration_s: float = Field(default=600.0, gt=0, description="a session without duration_s")
-    max_duration_s: float = Field(default=3600.0, gt=0, description="longest session allowed")
+    duration_s: float = Field(
+        default=600.0, gt=0, le=MAX_DURATION_S, description="a session without duration_s"
+    )
+    max_duration_s: float = Field(
+        default=3600.0, gt=0, le=MAX_DURATION_S, description="longest session allowed"
+    )
     decimation: int = Field(default=1, ge=1, le=8, description="depth pixels step per axis")
     smoothing: float = Field(
         default=0.3, gt=0, le=1, description="weight of the newest frame in a cell's running value"
@@ -60,7 +67,7 @@ class LiveConfig(Strict):
     )
     model_rate_hz: float = Field(
         default=1.0,
-        gt=0,
+        ge=MIN_LIVE_RATE_HZ,
         le=10,
         description="runs per second, at most, of [detection.onnx]'s model on the colour frames",
     )

@@ -24,6 +24,7 @@ import structlog
 
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import FAILURE, OK
+from silo_agent.base.limits import MAX_WAITING_REQUESTS
 from silo_agent.config import Config, ConfigError, config_warnings, load_config, stale_after_s
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.service.live_control import LiveControl
@@ -169,7 +170,9 @@ class Agent:
         self._wake.set()
 
     def _requested(self, command: ScanCommand) -> None:
-        """MQTT network thread: accept, or answer busy with the running scan's id."""
+        """MQTT network thread: accept, or answer busy with the running scan's id. Requests
+        that arrive before the scan starts (e.g. while a live session gives the cameras
+        back) share that one scan; past MAX_WAITING_REQUESTS they are answered busy."""
         with self._lock:
             running = self._running
             if running is not None:
@@ -178,6 +181,10 @@ class Agent:
                 )
             if self._stop.is_set():
                 raise CommandRejected("the agent is stopping")
+            if len(self._pending.requests) >= MAX_WAITING_REQUESTS:
+                raise CommandRejected(
+                    f"busy: {MAX_WAITING_REQUESTS} requests already wait for the next scan"
+                )
             self._pending.requests.append(command)
         self._wake.set()
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import UTC, datetime
 
 import structlog
@@ -22,6 +23,16 @@ from silo_agent.telemetry.client import CommandRejected, Telemetry
 from silo_agent.telemetry.live_command import LiveCommand, session_limits
 
 log = structlog.get_logger(__name__)
+
+
+@dataclass(frozen=True)
+class _Start:
+    """An accepted `{"on": true}`: the session it starts."""
+
+    command: LiveCommand
+    session_id: str
+    rate: float
+    duration: float
 
 
 class LiveControl:
@@ -40,34 +51,37 @@ class LiveControl:
         self._last_map = last_map
         self._wake = wake
         self._lock = threading.Lock()
-        self._start: tuple[LiveCommand, str, float, float] | None = None
-        self._stop_asked = False
-        self._command: LiveCommand | None = None
+        # requests accepted but not yet applied by `tend`, in order: a start, or None for a
+        # stop. What a new request is checked against is the state once they are applied, so
+        # an `off` right after an accepted `on` stops that session, and an `on` right after an
+        # accepted `off` starts a new one
+        self._queue: list[_Start | None] = []
         self._count = 0
 
-    def _active_session_id(self) -> str:
-        """Id of the session asked for or running; the caller holds the lock and knows one is."""
-        if self._start is not None:
-            return self._start[1]
-        assert self.session is not None
-        return self.session.session_id
+    def _expected(self) -> str | None:
+        """Id of the session that runs once the queued requests are applied (lock held)."""
+        if self._queue:
+            last = self._queue[-1]
+            return last.session_id if last is not None else None
+        if self.session is not None and self.session.active:
+            return self.session.session_id
+        return None
 
     def requested(self, command: LiveCommand) -> str:
         """MQTT thread: check the request and leave it for `tend`; the session id."""
         request = command.request
         with self._lock:
-            active = self._start is not None or (self.session is not None and self.session.active)
+            active = self._expected()
             if not request.on:
-                if not active:
+                if active is None:
                     raise CommandRejected("no live session is running")
-                self._stop_asked = True
-                session_id = self._active_session_id()
+                self._queue.append(None)
+                session_id = active
             else:
-                if active:
-                    running = self._active_session_id()
+                if active is not None:
                     raise CommandRejected(
-                        f'busy: live session {running} is running; send {{"on": false}} first',
-                        scan_id=running,
+                        f'busy: live session {active} is running; send {{"on": false}} first',
+                        scan_id=active,
                     )
                 try:
                     rate, duration = session_limits(self.config.live, request)
@@ -82,22 +96,25 @@ class LiveControl:
                 self._count += 1
                 session_id = f"{self.config.silo.id}-live-{datetime.now(UTC):%Y%m%dT%H%M%SZ}"
                 session_id += f"-{self._count}"
-                self._start = (command, session_id, rate, duration)
+                self._queue.append(_Start(command, session_id, rate, duration))
         self._wake.set()
         return session_id
 
     def tend(self, scan_due: bool) -> None:
         """Main loop, every turn: apply requests, give the cameras to a due scan, resume."""
         with self._lock:
-            start, self._start = self._start, None
-            stop, self._stop_asked = self._stop_asked, False
-        if start is not None:
-            self._begin(*start)
+            queued = list(self._queue)
+        for item in queued:  # still queued while applied: `requested` sees where they lead
+            if item is None:
+                if self.session is not None:
+                    self.session.stop("stopped by request")
+            else:
+                self._begin(item)
+        with self._lock:
+            del self._queue[: len(queued)]
         session = self.session
         if session is None:
             return
-        if stop:
-            session.stop("stopped by request")
         if not session.active:
             self.session = None
             return
@@ -107,7 +124,14 @@ class LiveControl:
         elif not scan_due and not session.running:
             session.resume()
 
-    def _begin(self, command: LiveCommand, session_id: str, rate: float, duration: float) -> None:
+    def _begin(self, start: _Start) -> None:
+        command, session_id, rate, duration = (
+            start.command,
+            start.session_id,
+            start.rate,
+            start.duration,
+        )
+
         def ended(reason: str) -> None:
             error = None if reason in ("duration reached", "stopped by request") else reason
             self.telemetry.finish_live(command, session_id, error)

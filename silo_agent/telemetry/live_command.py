@@ -7,6 +7,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from silo_agent.base.limits import MAX_DURATION_S, MIN_LIVE_RATE_HZ
 from silo_agent.config import LiveConfig
 
 MAX_COMMAND_BYTES = 4096
@@ -15,10 +16,10 @@ MAX_COMMAND_BYTES = 4096
 class LiveRequest(BaseModel):
     """`P/cmd/live` body: `{"on": true, "rate_hz": 2, "duration_s": 600}` or `{"on": false}`."""
 
-    model_config = ConfigDict(extra="forbid", strict=True)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     on: bool
-    rate_hz: Annotated[float, Field(gt=0)] | None = None
-    duration_s: Annotated[float, Field(gt=0)] | None = None
+    rate_hz: Annotated[float, Field(ge=MIN_LIVE_RATE_HZ)] | None = None
+    duration_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] | None = None
     request_id: Annotated[str, Field(min_length=1, max_length=128)] | None = None
 
 
