@@ -32,6 +32,7 @@ from silo_agent.base.atomic import publish_directory
 from silo_agent.base.choices import DEFAULT_MAX_DEPTH_M, DEFAULT_MIN_DEPTH_M
 from silo_agent.base.limits import (
     MAX_CLOUD_POINTS,
+    MAX_COORDINATE_M,
     MAX_MANIFEST_BYTES,
     MAX_PLY_HEADER_BYTES,
     MAX_SCAN_POINTS,
@@ -204,6 +205,8 @@ class _Camera(_Open):
     def _plain_name(cls, name: str) -> str:
         if not name or "/" in name or "\\" in name or name in (".", "..") or ".." in name:
             raise ValueError(f"must be a plain file name inside the scan directory, got {name!r}")
+        if "\x00" in name:  # no file can have it: the open would fail as a ValueError
+            raise ValueError(f"must not contain a NUL character, got {name!r}")
         return name
 
     @field_validator("extrinsic")
@@ -236,8 +239,8 @@ _SCAN_KEYS = {"eave_height_m": "eave_z"}  # BinShape names the config's keys
 
 class _Site(_Open):
     region: list[tuple[float, float]]
-    floor_z: float
-    ceiling_z: float | None = None
+    floor_z: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
+    ceiling_z: float | None = Field(default=None, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     base: Literal["floor", "boundary"] = "floor"
     bulk_density_t_m3: float | None = Field(default=None, gt=0)
     bin: _Bin | None = None
@@ -249,6 +252,14 @@ class _Site(_Open):
         if problem:
             raise ValueError(problem)
         return region
+
+    @model_validator(mode="after")
+    def _ceiling_above_floor(self) -> _Site:
+        """As the config requires: a floor above the ceiling made a volume of 3e-05 m³ with
+        negative levels, reported valid."""
+        if self.ceiling_z is not None and self.ceiling_z <= self.floor_z:
+            raise ValueError(f"ceiling_z ({self.ceiling_z}) must be above floor_z ({self.floor_z})")
+        return self
 
     @model_validator(mode="after")
     def _bin_consistent(self) -> _Site:

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import (
+    AfterValidator,
     Field,
     model_validator,
 )
 
-from silo_agent.base.limits import MAX_DURATION_S
+from silo_agent.base.limits import MAX_DURATION_S, MAX_TOPIC_PREFIX_BYTES
 from silo_agent.config.base import HostName, Strict
 
 
@@ -32,6 +33,26 @@ class MqttTlsConfig(Strict):
         return self
 
 
+def _topic_prefix(prefix: str) -> str:
+    """A prefix the agent's topics start with, as a broker takes it (MQTT 5, 4.7): a bad one
+    passed every check and then nothing was ever published."""
+    if not prefix:
+        raise ValueError("must not be empty")
+    if "\x00" in prefix:
+        raise ValueError("must not contain a NUL character")
+    if "+" in prefix or "#" in prefix:
+        raise ValueError("must not contain a wildcard (+ or #)")
+    if prefix.startswith("$"):
+        raise ValueError("must not start with $ (the broker's topics, e.g. $SYS)")
+    size = len(prefix.encode("utf-8"))
+    if size > MAX_TOPIC_PREFIX_BYTES:
+        raise ValueError(f"is {size:,} bytes long, at most {MAX_TOPIC_PREFIX_BYTES:,} are allowed")
+    return prefix
+
+
+TopicPrefix = Annotated[str, AfterValidator(_topic_prefix)]
+
+
 class SparkplugConfig(Strict):
     """Eclipse Sparkplug B 3.0 dialect, published next to the JSON topics."""
 
@@ -49,13 +70,13 @@ class HomeAssistantConfig(Strict):
     """Home Assistant MQTT discovery (device-based)."""
 
     enabled: bool = False
-    discovery_prefix: str = Field(default="homeassistant", pattern=r"^[^#+]+$")
+    discovery_prefix: TopicPrefix = "homeassistant"
 
 
 class MqttConfig(Strict):
     host: HostName = Field(default="127.0.0.1", description="broker name or address")
     port: int = Field(default=1883, ge=1, le=65535)
-    topic_prefix: str = Field(default="silo", pattern=r"^[^#+]+$")
+    topic_prefix: TopicPrefix = "silo"
     protocol: Literal["5", "3.1.1"] = "5"
     client_id: str | None = Field(
         default=None, min_length=1, max_length=64, description="default: silo-agent-<silo.id>"
