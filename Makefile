@@ -7,13 +7,15 @@ STAMP  := $(VENV)/.installed
 .PHONY: demo test lint bench system-deps clean
 
 # System libraries a fresh Debian lacks: libusb for open3d/pyrealsense2, mosquitto and chromium
-# (with its matching chromium-driver) for the tests.
+# (with its matching chromium-driver) for the tests, faketime (libfaketime) for the test that
+# steps the daemon's wall clock.
 system-deps:
 	@missing=""; \
 	ldconfig -p | grep -q 'libusb-1.0.so.0' || missing="$$missing libusb-1.0-0"; \
 	command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || missing="$$missing mosquitto"; \
 	[ -x /usr/bin/chromium ] || missing="$$missing chromium"; \
 	[ -x /usr/bin/chromedriver ] || missing="$$missing chromium-driver"; \
+	ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1 || missing="$$missing faketime"; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	    echo "installing:$$missing"; \

@@ -601,34 +601,6 @@ def test_bad_time_zone_exits_78(tmp_path: Path):
     assert "silo.timezone: unknown time zone 'Mars/Olympus'" in run.stderr
 
 
-def test_cron_runs_in_the_site_time_zone_with_grace_and_coalescing(tmp_path: Path):
-    from silo_agent.config import load_config
-    from silo_agent.service.daemon import Agent
-
-    config_path = write_config(
-        tmp_path / "agent.toml",
-        1,
-        tmp_path,
-        schedule={"cron": "0 6 * * *", "interval_s": 3600, "misfire_grace_s": 120},
-    )
-    config_path.write_text(
-        config_path.read_text().replace("[silo]\n", '[silo]\ntimezone = "Australia/Adelaide"\n')
-    )
-    agent = Agent(config_path, load_config(config_path))
-    agent._start_scheduler()
-    try:
-        jobs = {job.id: job for job in agent._scheduler.get_jobs()}
-        cron = jobs["cron"]
-        assert str(cron.next_run_time.tzinfo) == "Australia/Adelaide"
-        assert (cron.next_run_time.hour, cron.next_run_time.minute) == (6, 0)
-        assert jobs["interval"].trigger.interval.total_seconds() == 3600
-        for job in jobs.values():
-            assert job.misfire_grace_time == 120 and job.coalesce and job.max_instances == 1
-    finally:
-        agent._stop_scheduler()
-        agent.telemetry.outbox.close()
-
-
 def test_every_daemon_key_is_documented_in_the_example():
     from silo_agent.config import AlarmsConfig, AuditConfig, MetricsConfig, ScheduleConfig
 

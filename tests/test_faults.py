@@ -357,3 +357,34 @@ def test_a_thread_that_keeps_dying_stops_the_agent_with_status_1(in_process: InP
         _wait(lambda: in_process.agent.telemetry.alive() or not in_process.main.is_alive())
     in_process.main.join(30)
     assert in_process.status == [FAILURE]
+
+
+# ---------------------------------------------------------------- the broker forgets
+
+
+def test_a_broker_restarted_without_persistence_gets_the_session_state_again(tmp_path):
+    """mosquitto restarted with nothing kept: the agent reconnects and re-sends what a
+    session announces (status, every alarm state); the retained results come back with the
+    next scan (docs/limits.md)."""
+    broker = Broker(tmp_path / "broker", persistence=False).start()
+    config = write_config(
+        tmp_path / "agent.toml", broker.port, tmp_path, schedule={"scan_at_start": True}
+    )
+    agent = Daemon(config, tmp_path)
+    try:
+        first = Collector(broker, [f"{BASE}/#"], client_id="before-restart")
+        first.wait_topic(f"{BASE}/volume", timeout=90)
+        first.close()
+        broker.stop()
+        broker.start()
+        agent.wait_log("connection to the broker lost")
+        agent.wait_log("connected to the broker", 2)
+        late = Collector(broker, [f"{BASE}/#"], client_id="after-restart")
+        late.wait_topic(f"{BASE}/status")
+        late.wait_topic(f"{BASE}/alarm/cache")
+        assert validate_json(late.on(f"{BASE}/status")[-1].payload)["state"] == "online"
+        assert not late.on(f"{BASE}/volume")  # the broker forgot it; the next scan brings it
+        late.close()
+    finally:
+        agent.kill()
+        broker.stop()

@@ -1,7 +1,7 @@
 """`silo-agent run`: the service. Scans on schedule and on request, one at a time.
 
-Threads: the main thread owns the loop (signals, watchdog, starting and collecting scans,
-reloads); APScheduler's thread and the MQTT network thread only hand triggers to it through
+Threads: the main thread owns the loop (signals, watchdog, the schedule, starting and
+collecting scans, reloads); the MQTT network thread only hands triggers to it through
 `_wake`; a scan runs in its own worker thread so the loop keeps petting the systemd watchdog.
 A scan past its deadline is abandoned (reported as failed, its late result dropped); the
 cameras stay busy until its thread returns, so no other scan starts before.
@@ -30,6 +30,7 @@ from silo_agent.grid.heightmap import HeightMap
 from silo_agent.service.live_control import LiveControl
 from silo_agent.service.pipeline import STATE_FILE, Outcome, Pipeline, ScanAbandoned
 from silo_agent.service.scan_path import new_scan_id, no_result_summary
+from silo_agent.service.schedule import Schedule
 from silo_agent.service.sdnotify import Notifier
 from silo_agent.service.state_lock import StateLock
 from silo_agent.storage.audit import AuditCache
@@ -119,7 +120,7 @@ class Agent:
         self._running: _Running | None = None
         self._done = 0
         self._last: Outcome | None = None
-        self._scheduler = None
+        self._scheduler: Schedule | None = None
         self._deaths: dict[str, list[float]] = {}  # internal thread -> when it died
         self._status = OK
         self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
@@ -159,9 +160,9 @@ class Agent:
     # ------------------------------------------------------------ triggers
 
     def _scheduled(self) -> None:
-        """APScheduler job: ask the loop for a scan. One that falls during a scan runs right
-        after it (the 06:00 report scan is not lost to an hourly one still running); several
-        waiting coalesce into one."""
+        """A scheduled job fell due: ask the loop for a scan. One that falls during a scan
+        runs right after it (the 06:00 report scan is not lost to an hourly one still
+        running); several waiting coalesce into one."""
         with self._lock:
             if self._pending.scheduled:
                 log.info("scheduled scan coalesced with the one already waiting")
@@ -198,41 +199,24 @@ class Agent:
     # ------------------------------------------------------------ scheduling
 
     def _start_scheduler(self) -> None:
-        from apscheduler.schedulers.background import BackgroundScheduler
-        from apscheduler.triggers.cron import CronTrigger
-        from apscheduler.triggers.interval import IntervalTrigger
-
-        sched = self.config.schedule
         zone = ZoneInfo(self.config.silo.timezone)
-        scheduler = BackgroundScheduler(timezone=zone)
-        options = {
-            "misfire_grace_time": int(max(1, sched.misfire_grace_s)),
-            "coalesce": True,
-            "max_instances": 1,
-        }
-        if sched.interval_s is not None:
-            scheduler.add_job(
-                self._scheduled,
-                IntervalTrigger(seconds=sched.interval_s, timezone=zone),
-                id="interval",
-                **options,
-            )
-        if sched.cron is not None:
-            scheduler.add_job(
-                self._scheduled,
-                CronTrigger.from_crontab(sched.cron, timezone=zone),
-                id="cron",
-                **options,
-            )
-        scheduler.start()
-        self._scheduler = scheduler
-        for job in scheduler.get_jobs():
-            log.info("scan scheduled", job=job.id, next_run=str(job.next_run_time))
+        wall, mono = datetime.now(UTC), time.monotonic()
+        self._scheduler = Schedule(self.config.schedule, zone, wall, mono)
+        for job, at in self._scheduler.next_runs(wall, mono).items():
+            log.info("scan scheduled", job=job, next_run=str(at.astimezone(zone)))
 
     def _stop_scheduler(self) -> None:
-        if self._scheduler is not None:
-            self._scheduler.shutdown(wait=False)
-            self._scheduler = None
+        self._scheduler = None
+
+    def _tick_schedule(self) -> float | None:
+        """Main loop, every turn: the scheduled jobs due now ask for a scan; how long until
+        the next one is due."""
+        if self._scheduler is None:
+            return None
+        wall, mono = datetime.now(UTC), time.monotonic()
+        for _job in self._scheduler.due(wall, mono):
+            self._scheduled()
+        return self._scheduler.seconds_to_next(wall, mono)
 
     # ------------------------------------------------------------ scans
 
@@ -428,9 +412,12 @@ class Agent:
             self.live.tend(scan_due=ready or self._running is not None)  # a full scan wins
             if ready:
                 self._start_scan()
-            timeout = LOOP_S  # sleep no later than the next watchdog ping is due
+            timeout = LOOP_S  # sleep no later than the next watchdog ping or job is due
             if watchdog_every is not None:
-                timeout = min(LOOP_S, max(0.0, next_ping - time.monotonic()))
+                timeout = min(timeout, max(0.0, next_ping - time.monotonic()))
+            due_in = self._tick_schedule()
+            if due_in is not None:
+                timeout = min(timeout, due_in)
             self._wake.wait(timeout)
             self._wake.clear()
         return self._shutdown()

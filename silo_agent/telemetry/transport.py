@@ -155,7 +155,7 @@ class Transport:
                     log.exception("MQTT loop error", link=link.name)
                     self.drop(link, "internal error")
             if not any(link.client for link in self.links):
-                time.sleep(0.05)
+                self.stopping.wait(0.05)  # a stop ends the wait at once
         self._shutdown()
 
     def drop(self, link: Link, reason: str) -> None:
