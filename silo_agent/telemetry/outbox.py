@@ -411,8 +411,13 @@ class Outbox:
         old = self._db
         try:
             new = self._open_disk(check=False)
-            old.backup(new)
         except (sqlite3.Error, OSError) as exc:
+            self._spill(f"cannot recreate {self.path}: {exc}")
+            return
+        try:
+            old.backup(new)
+        except sqlite3.Error as exc:
+            _close_quietly(new)
             self._spill(f"cannot recreate {self.path}: {exc}")
             return
         self._db = new
