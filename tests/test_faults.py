@@ -130,10 +130,11 @@ class Rig:
         self.col.wait_for(lambda _ms: alarm in self.alarms(since), timeout)
 
     def healthy_since(self, log_lines: int) -> None:
-        """Alive, pinged the watchdog within the last second and a half, no traceback."""
+        """Alive, pinged the watchdog within its 2 s (systemd would not have restarted it),
+        no traceback."""
         assert self.agent.proc.poll() is None
         last_ping = max(t for t, m in self.notify.messages if m == "WATCHDOG=1")
-        assert time.monotonic() - last_ping < 1.5
+        assert time.monotonic() - last_ping < 2.0
         new = self.agent.log()[log_lines:]
         assert not [e for e in new if "exception" in e or "Traceback" in e.get("event", "")]
 
