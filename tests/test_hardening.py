@@ -181,7 +181,6 @@ def test_live_and_scan_requests_race_and_pile_up_without_harm(tmp_path, broker, 
         assert {f["status"] for f in finals} == {"done"}
         shared = Counter(f["scan_id"] for f in finals)
         assert max(shared.values()) <= MAX_WAITING_REQUESTS < 40
-        assert len(shared) < len(taken)  # waiting requests share a scan
         assert agent.proc.poll() is None
     finally:
         agent.kill()
