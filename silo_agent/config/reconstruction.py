@@ -36,7 +36,7 @@ class ReconstructionConfig(Strict):
     )
     max_clusters: int = Field(default=2, ge=1, le=8)
     fill: Literal["membrane", "bspline", "repose"] = Field(
-        default="repose", description="how empty cells are filled (reconstruct/fill.py)"
+        default="membrane", description="how empty cells are filled (reconstruct/fill.py)"
     )
     grain: Grain = Field(
         default=DEFAULT_GRAIN, description="what is stored: its angle of repose bounds the fill"

@@ -1,8 +1,8 @@
 """BICM reconstruction: scan -> height map -> volume, mass, levels, coverage. Pure: no I/O.
 
 fuse + crop -> voxel down-sample (optional) -> clustered means per cell -> fill of empty cells
-(`reconstruction.fill`: by default the membrane held to the grain's angle of repose; the plain
-membrane or the paper's B-spline on request) -> slope
+(`reconstruction.fill`: by default the membrane; held to the grain's angle of repose, or the
+paper's B-spline, on request) -> slope
 correction -> integration over the region (cut cells weighted).
 """
 

@@ -18,9 +18,10 @@ to its cap. By the project's rule the fill should move to the library solve; tha
 memory for a 20 m silo's millions of unknowns and on the accuracy report (the direct solve is
 exact, this stops at a 1e-5 residual, up to 2 cm from the exact fill in a large hole).
 
-`repose_fill` (default): the membrane, capped by the level surface that rises gently from the
-known cells around a hole and raised to the flank that falls from the visible crest at the
-angle of repose (`repose_bounds`). bench/accuracy.py compares the three fills (`--fills`).
+`repose_fill` (on request, `fill = "repose"`): the membrane, capped by the level surface
+that rises gently from the known cells around a hole and raised to the flank that falls from
+the visible crest at the angle of repose (`repose_bounds`). bench/accuracy.py compares the
+three fills (`--fills`).
 """
 
 from __future__ import annotations
