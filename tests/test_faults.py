@@ -270,11 +270,14 @@ def _wait(check: Callable[[], bool], timeout: float = 30) -> None:
 
 
 def _thread(prefix: str) -> threading.Thread:
-    """The running thread whose name starts with `prefix`, once there is one."""
+    """The running thread whose name starts with `prefix`, once there is one (started: a
+    thread still being bootstrapped is listed before it has an ident)."""
     found: list[threading.Thread] = []
 
     def look() -> bool:
-        found[:] = [t for t in threading.enumerate() if t.name.startswith(prefix)]
+        found[:] = [
+            t for t in threading.enumerate() if t.name.startswith(prefix) and t.ident is not None
+        ]
         return bool(found)
 
     _wait(look)

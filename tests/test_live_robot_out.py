@@ -94,7 +94,8 @@ def test_a_session_that_cannot_keep_the_robot_out_is_refused_saying_why(
         control.requested(command)
     message = str(refused.value)
     assert "cannot keep the robot out" in message and f"{size[0]}x{size[1]}" in message
-    assert control._start is None  # nothing starts
+    control.tend(scan_due=False)  # the main loop's turn applies what was accepted: nothing
+    assert control.session is None
 
 
 @pytest.fixture(scope="module")
