@@ -75,10 +75,10 @@ def test_a_run_missed_beyond_the_grace_is_skipped_and_several_coalesce():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not FAKETIME.exists(), reason="needs Debian's faketime (make system-deps)")
 def test_the_daemon_keeps_its_schedule_across_real_clock_steps(tmp_path):
     """libfaketime steps the daemon's wall clock (only its own: the monotonic clock is left
     alone) back an hour and forward again: scheduled scans go on, each step is logged."""
+    assert FAKETIME.exists(), "needs Debian's faketime: `make system-deps` installs it"
     offset = tmp_path / "faketime"
     offset.write_text("+0\n")
     config = write_config(
