@@ -202,8 +202,9 @@ def test_bd_seq_goes_up_once_per_session_not_per_connection_attempt(
         col.wait_topic(NODE.format("NBIRTH"), seen + 1)
         assert metric_map(births(col)[-1])["bdSeq"].value == 1
 
+        deaths = len(col.on(NODE.format("NDEATH")))  # a Last Will of the outage may be there
         tel.stop()  # NDEATH with the session's bdSeq; the next process takes the next one
-        death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[-1].payload)
+        death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"), deaths + 1)[-1].payload)
         assert death.bd_seq_metric.value == 1
         telemetry_factory(broker, sparkplug={"enabled": True})
         col.wait_topic(NODE.format("NBIRTH"), len(births(col)) + 1)

@@ -95,7 +95,10 @@ def test_the_daemon_keeps_its_schedule_across_real_clock_steps(tmp_path):
         agent.wait_log("scan finished", 1, timeout=60)
         for step, shift in ((-3600, "-3600"), (3600, "+0")):
             before = len(agent.wait_log("scan started"))
-            offset.write_text(f"{shift}\n")
+            # replaced, not rewritten: libfaketime re-reads the file at every clock call and
+            # must never see it truncated
+            (tmp_path / "faketime.new").write_text(f"{shift}\n")
+            os.replace(tmp_path / "faketime.new", offset)
             (stepped,) = agent.wait_log("wall clock stepped: schedule re-planned", 1 + (step > 0))[
                 -1:
             ]
