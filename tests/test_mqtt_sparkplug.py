@@ -138,35 +138,35 @@ def test_ndeath_is_the_will_and_replayed_data_is_historical(
     assert live.seq == 1 and not any(m.is_historical for m in live.metrics)
 
 
+def host_waits(logs: list[dict]) -> int:
+    """Sessions that found the primary host offline and held their NBIRTH."""
+    return sum(e["event"].startswith("Sparkplug waiting for the primary host") for e in logs)
+
+
 def test_waits_for_the_primary_host(broker, telemetry_factory, collector_factory):
     col = collector_factory(broker, ["spBv1.0/#"])
-    tel = telemetry_factory(broker, sparkplug={"enabled": True, "primary_host_id": "scada"})
-    tel.publish_result(summary())
-    time.sleep(1.0)
-    assert not col.on(NODE.format("NBIRTH")) and not col.on(NODE.format("NDATA"))
-    now = int(time.time() * 1000)
-    col.client.publish(
-        "spBv1.0/STATE/scada", json.dumps({"online": True, "timestamp": now}), qos=1, retain=True
-    )
-    col.wait_topic(NODE.format("NBIRTH"))
-    col.wait_topic(NODE.format("NDATA"))
-    # host goes offline: NDEATH, new session, no birth until the host is back
-    col.client.publish(
-        "spBv1.0/STATE/scada",
-        json.dumps({"online": False, "timestamp": now + 1}),
-        qos=1,
-        retain=True,
-    )
-    death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[0].payload)
-    assert death.bd_seq_metric.value == 0
-    time.sleep(0.8)
+
+    def host_state(online: bool, stamp: int) -> None:
+        payload = json.dumps({"online": online, "timestamp": stamp})
+        col.client.publish("spBv1.0/STATE/scada", payload, qos=1, retain=True)
+
+    with capture_logs() as logs:
+        tel = telemetry_factory(broker, sparkplug={"enabled": True, "primary_host_id": "scada"})
+        tel.publish_result(summary())
+        # the barrier: the session's first turn decided not to birth (a birth would be instead)
+        wait_until(lambda: host_waits(logs) == 1)
+        assert not col.on(NODE.format("NBIRTH")) and not col.on(NODE.format("NDATA"))
+        now = int(time.time() * 1000)
+        host_state(True, now)
+        col.wait_topic(NODE.format("NBIRTH"))
+        col.wait_topic(NODE.format("NDATA"))
+        # host goes offline: NDEATH, new session, no birth until the host is back
+        host_state(False, now + 1)
+        death = ps.NDeath.decode(col.wait_topic(NODE.format("NDEATH"))[0].payload)
+        assert death.bd_seq_metric.value == 0
+        wait_until(lambda: host_waits(logs) == 2)  # the next session holds its birth too
     assert len(col.on(NODE.format("NBIRTH"))) == 1
-    col.client.publish(
-        "spBv1.0/STATE/scada",
-        json.dumps({"online": True, "timestamp": now + 2}),
-        qos=1,
-        retain=True,
-    )
+    host_state(True, now + 2)
     col.wait_topic(NODE.format("NBIRTH"), 2)
     assert metric_map(births(col)[1])["bdSeq"].value == 1
     assert tel._thread.is_alive()

@@ -110,6 +110,7 @@ class Session:
         self.spb_node = spb_node
         self._host_online = False
         self._host_ts = -1
+        self._waiting_since = -1.0  # connected_at of the session that logged its wait
         self._live_sent = -float("inf")  # monotonic time the last live map went out
 
     def status_payload(self, state: AgentState, env: Envelope) -> StatusPayload:
@@ -200,9 +201,17 @@ class Session:
         may_birth = self.cfg.sparkplug.primary_host_id is None or self._host_online
         if may_birth and (rebirth or not link.born):
             self._publish_birth(link)
-        elif rebirth:
+            return link.born
+        if rebirth:
             with self.state.lock:
                 self.state.rebirth = True  # keep it for when the host is back
+        if not may_birth and not link.born and self._waiting_since != link.connected_at:
+            # once per session: an operator who sees no NBIRTH learns why
+            self._waiting_since = link.connected_at
+            log.info(
+                "Sparkplug waiting for the primary host to be online before NBIRTH",
+                primary_host_id=self.cfg.sparkplug.primary_host_id,
+            )
         return link.born
 
     def live_packet(self, payload: bytes, qos: int) -> tuple[str, Properties | None, int]:
