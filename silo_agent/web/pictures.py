@@ -1,11 +1,12 @@
 """The page's and the report's pictures, drawn by matplotlib's Agg backend (no display).
 
 The height map is laid out cell for pixel: the coloured cells are one exact raster
-(`figimage`, no resampling), `cell_px` pixels a side, with the walls, piles, cameras and
-footprints drawn over it in silo coordinates. `MapLayout` says where cell [row, col] lands, so
-a reader (and the browser test) can find any cell in the picture. Colour is height above the
-floor on `COLORMAP` from `vmin` to `vmax`; a cell filled by interpolation (not observed) is the
-same colour blended `FILLED_BLEND` towards white; outside the region is `OUTSIDE_RGB`.
+(written into Agg's canvas, no resampling), `cell_px` pixels a side, with the walls, piles,
+cameras and footprints drawn over it in silo coordinates. `MapLayout` says where cell
+[row, col] lands, so a reader (and the browser test) can find any cell in the picture.
+Colour is height above the floor on `COLORMAP` from `vmin` to `vmax`; a cell filled by
+interpolation (not observed) is the same colour blended `FILLED_BLEND` towards white;
+outside the region is `OUTSIDE_RGB`.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ MAP_TARGET_PX = 720  # a small map's cells are enlarged to about this many pixel
 MAP_MARGIN_PX = 40  # room around the grid for cameras on the walls and their labels
 FOOTPRINT_CELLS = 48  # footprints are outlined on a grid at most this many cells a side...
 FOOTPRINT_SHARE = 0.25  # ...around the blocks where this share of the cells hold its points
-PNG_OPTIONS = {"compress_level": 3}  # a 1200 x 1200 map: a third of the default's time
+PNG_COMPRESS_LEVEL = 3  # a 1200 x 1200 map: a third of the default level's (6) time
 CAMERA_COLOURS = ("#e41a1c", "#ff7f00", "#984ea3", "#f781bf", "#a65628", "#377eb8", "#4daf4a")
 
 
@@ -126,14 +127,13 @@ def colour_cells(hm: HeightMap, layout: MapLayout) -> np.ndarray:
 
 
 def _map_figure(hm: HeightMap, layout: MapLayout) -> tuple[Figure, Axes]:
-    """A figure of exactly the layout's pixels with the cells in place and axes in metres."""
+    """A figure of exactly the layout's pixels with axes in metres over the cells' place
+    (the cells themselves are laid in by `_render_png`)."""
     from matplotlib.figure import Figure
 
     s, m = layout.cell_px, layout.margin_px
-    cells = colour_cells(hm, layout)
-    raster = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)
     fig = Figure(figsize=(layout.width_px / 100, layout.height_px / 100), dpi=100)
-    fig.figimage(raster, xo=m, yo=m, origin="lower", zorder=-1)  # under the axes
+    fig.patch.set_visible(False)  # the canvas is painted by `_render_png`
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
     pad = m / s * hm.step
     x0, y0 = hm.origin
@@ -142,6 +142,30 @@ def _map_figure(hm: HeightMap, layout: MapLayout) -> tuple[Figure, Axes]:
     ax.set_axis_off()
     ax.patch.set_alpha(0.0)
     return fig, ax
+
+
+def _render_png(fig: Figure, cells: np.ndarray, layout: MapLayout) -> bytes:
+    """The cells written straight into Agg's canvas (white margin), the figure's artists drawn
+    over them, encoded as an RGB PNG by Pillow.
+
+    Our own compositing, not `figimage` + `savefig`, for a measured win: on the 12 m silo at
+    1 cm of bench/web.py (1200 x 1200 cells) 0.21 s against 0.39 s, the same pixels;
+    `figimage` resamples and masks even at one cell per pixel, and `savefig` encodes RGBA."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    renderer.clear()
+    canvas = np.asarray(renderer.buffer_rgba())  # a view of Agg's own buffer
+    canvas[...] = 255
+    s, m = layout.cell_px, layout.margin_px
+    raster = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)
+    top = layout.height_px - m - layout.rows * s  # row 0 is at the bottom of the picture
+    canvas[top : top + layout.rows * s, m : m + layout.cols * s, :3] = raster[::-1]
+    fig.draw(renderer)
+    buffer = io.BytesIO()
+    Image.fromarray(canvas[..., :3]).save(buffer, format="png", compress_level=PNG_COMPRESS_LEVEL)
+    return buffer.getvalue()
 
 
 def _block_share(mask: np.ndarray, factor: int) -> np.ndarray:
@@ -227,9 +251,7 @@ def map_png(
                 lw=2,
             )
         )
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100, pil_kwargs=PNG_OPTIONS)
-    return buffer.getvalue(), layout
+    return _render_png(fig, colour_cells(hm, layout), layout), layout
 
 
 def history_svg(records: Sequence[ScanRecord], bulk_density: float | None, span: str) -> str:
