@@ -110,3 +110,34 @@ def test_raking_robot_truth():
     assert np.max(after) <= np.max(before)
     centre = robot.pose(5.0)
     assert robot.height(100.0)(np.array([centre.x]), np.array([centre.y]))[0] <= robot.rake_z
+
+
+def looking_down(serial: str, height_m: float, depth_m: float, size: int = 64) -> DepthFrame:
+    """A camera `height_m` above a flat floor at z = 0, looking straight down, every pixel
+    reading `depth_m` (a D455 focal length of 64 px: a 1 m wide view from 1 m up)."""
+    extrinsic = np.diag([1.0, -1.0, -1.0, 1.0])  # camera z (forward) -> silo -z
+    extrinsic[2, 3] = height_m
+    depth = np.full((size, size), round(depth_m * 1000), dtype=np.uint16)
+    return DepthFrame(serial, depth, 0.001, 64.0, 64.0, size / 2, size / 2, extrinsic)
+
+
+def test_a_far_cameras_points_count_by_their_depth_noise() -> None:
+    """A camera 4 m up reads the floor 10 cm high; one 1 m up reads it right. Weighted by the
+    D455's depth variance (z^4: 256 times more at 4 m), the far camera's points move the
+    cells they share by well under a millimetre, where a plain mean would move them by
+    millimetres; each cell's variance is the near camera's single-pixel one (z^2 x 0.08 px /
+    (f x 95 mm)), at most, and at least half of it, the share pixels a few apart have in
+    common."""
+    grid = Grid.over(np.array([[-0.4, -0.4], [0.4, -0.4], [0.4, 0.4], [-0.4, 0.4]]), 0.02)
+    live = LiveMap(grid, LiveConfig())
+    near, far = looking_down("near", 1.0, 1.0), looking_down("far", 4.0, 3.9)
+    alone, _count, _variance = live.frame_heights([far])
+    assert np.nanmedian(alone) == pytest.approx(0.1, abs=0.002)
+    both, _count, variance = live.frame_heights([near, far])
+    shared = np.isfinite(alone) & np.isfinite(both)
+    assert shared.sum() > 100
+    assert np.max(np.abs(both[shared])) < 0.001
+    pixel_rms = 1.0**2 * 0.08 / (64.0 * 0.095)
+    inside = np.isfinite(both)
+    assert np.all(variance[inside] <= pixel_rms**2 * (1 + 1e-6))
+    assert np.all(variance[inside] >= pixel_rms**2 / 2)

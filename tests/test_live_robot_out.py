@@ -120,22 +120,26 @@ def run_424():
 def test_at_424x240_the_robot_stays_out_and_the_grain_is_within_20mm(run_424) -> None:
     rig, grid, steps = run_424
     xs, ys = grid.centres()
-    p90, ahead = [], []
+    worst, typical, ahead = [], [], []
     for t, update, truth in steps:
+        pose = rig.robot.pose(t)
+        under = pose.footprint(xs, ys)
+        excess = update.heightmap.heights[under] - truth[under]
+        # no map, from the first, stands more than 30 mm above the grain under the robot
+        worst.append(float(excess.max()))
         if t < WARM_UP_S:
             continue
-        pose = rig.robot.pose(t)
         away = update.heightmap.observed & ~pose.footprint(xs, ys, AWAY_M)
         rms = float(np.sqrt(np.mean((update.heightmap.heights[away] - truth[away]) ** 2)))
         assert rms <= 0.020, f"t={t}: grain {rms * 1000:.1f} mm RMS"
-        under = pose.footprint(xs, ys)
-        excess = update.heightmap.heights[under] - truth[under]
         assert update.held[under].all(), f"t={t}"
-        p90.append(float(np.percentile(excess, 90)))
+        typical.append(float(np.median(excess)))
         # held before the robot gets there: where it will be a second later is held already
         ahead.append(float(update.held[rig.robot.pose(t + 1.0).footprint(xs, ys)].mean()))
-    # the robot does not leak in: nine tenths of its footprint within 20 mm of the grain in
-    # every map (before: up to 29 mm, the worst cells 152 mm; a stale grain cell in a poorly
-    # seen spot can still stand higher, see bench/results/live-robot.md)
-    assert max(p90) <= 0.020, np.round(np.array(p90) * 1000, 1).tolist()
+    # the robot does not leak in: no cell of its footprint more than 30 mm above the grain
+    # (#25's target; before the noise weighting 62 mm after the warm-up, 78 mm in it: grain
+    # cells a far camera read high once, held under the robot)
+    assert max(worst) <= 0.030, np.round(np.array(worst) * 1000).tolist()
+    # the price: a held cell stands a fraction of its noise below the grain, not in a hole
+    assert np.median(typical) >= -0.060, np.round(np.array(typical) * 1000).tolist()
     assert np.mean(ahead) >= 0.98, np.round(ahead, 2).tolist()

@@ -6,7 +6,9 @@ pass over the newest frame of each camera:
 
 - every valid depth pixel goes to its cell through a ray table precomputed per camera (silo
   frame, z = 1 scale), so a point costs three multiply-adds; the frame's cell height is the
-  mean of its points;
+  mean of its points, each weighted by 1 / its D455 depth variance (the RMS grows with range
+  squared: a far camera's point counts a sixteenth of one at half the range), with the
+  variance of that mean; each cell's running value carries its variance along;
 - each cell keeps a running value: the mean of its first frame heights, then an exponential
   average of them (noise down by sqrt(smoothing / (2 - smoothing))), replaced by the frame
   height when it is more than `reset_m` away and confirmed, by most of its neighbours
@@ -19,7 +21,9 @@ pass over the newest frame of each camera:
   grain never rising more steeply than its angle of repose); its cells and the disc of
   `robot_radius_m` around their centre (a robot on a slope shows less than its whole top), plus
   `robot_margin_m`, swept ahead along its tracked motion for `hold_ahead_s`, are held at their
-  last good value (at most the local median of the values measured with no robot near) and
+  last good value, at most the local median and the nearest trusted value (`_trusted`: the
+  local noise-weighted mean of the values measured with no robot near, less a share of their
+  RMS: a far camera's one noisy reading of a grain cell does not stand under the robot), and
   marked in the `held` layer; a
   site's YOLO model (live/model.py) adds its robot boxes, placed through the depth under them
   (`sighting_of`), and a model sighting alone holds its disc as a depth one does;
@@ -51,6 +55,14 @@ MIN_POINTS = 1  # a frame's cell height needs this many points
 SPARSE_NEIGHBOURS = 4  # a one-point cell needs this many measured neighbours (of 8)
 REFILL_GROWTH = 0.01  # share of the grid newly measured that renews the hole-filling table
 D455_BASELINE_M = 0.095  # stereo baseline: depth edges are judged in disparity pixels
+D455_SUBPIXEL = 0.08  # disparity RMS (px): depth RMS z^2 x this / (f x baseline)
+CORRELATED_SHARE = 0.5  # of a D455's depth noise variance, common to pixels a few apart:
+# more points of one frame do not average it down (sim/camera.py NoiseModel, the same)
+TRUST_RMS_M = 0.05  # a cell measured within this RMS with no robot near may stand under it
+TRUST_SIGMAS = 0.75  # ... at most this many RMS below its block's noise-weighted mean
+TRUST_CELLS = 11  # a newly held cell's value: at most its block's trusted, noise-weighted mean
+MIN_VARIANCE_M2 = 1e-6  # a cell's variance as a weight: the noise's correlated part keeps
+# any cell above 1 mm RMS
 ROBUST_CELLS = 5  # a newly held cell's value: at most the median of this block around it
 MAX_ROBOT_SPEED_M_S = 1.5  # a sighting farther from the last one than this is another robot
 JUMP_MIN_VOTES = 3  # cells of a 3 x 3 block, and two thirds of those measured, jumping the
@@ -214,6 +226,11 @@ class _Rays:
             np.ascontiguousarray(silo[:, k], dtype=np.float32) for k in range(3)
         )
         self.origin = np.asarray(frame.extrinsic, dtype=np.float32)[:3, 3]
+        # a point's weight is 1 / its depth variance, (z^2 x D455_SUBPIXEL / (f x baseline))^2:
+        # this / z^4 (its height moves along the ray too, but a grazing far ray's small rise
+        # meets slopes, shadows' edges and sparse sampling, which that model does not know)
+        per_depth = D455_SUBPIXEL / (frame.fx * D455_BASELINE_M)
+        self.weight = np.float32(1.0 / np.square(per_depth))
         self.key = _rays_key(frame)
 
 
@@ -248,6 +265,9 @@ class LiveMap:
         self.measured_at = np.full(grid.shape, -np.inf)
         # each cell's value when last measured with no robot near: what it is held at
         self.safe = self.height.copy()
+        # the variance of each cell's running value, and of its `safe` value (inf: unknown)
+        self.variance = np.full(grid.shape, np.inf)
+        self.safe_variance = np.full(grid.shape, np.inf)
         self.sequence = 0
         self._tracks: list[tuple[float, float, float, float, float]] = []  # x, y, t, vx, vy
         self._rays: dict[str, _Rays] = {}
@@ -267,11 +287,13 @@ class LiveMap:
             rays = self._rays[frame.serial] = _Rays(frame, self.settings.decimation)
         return rays
 
-    def frame_heights(self, frames: list[DepthFrame]) -> tuple[np.ndarray, np.ndarray]:
-        """Mean height of the frames' points per cell (NaN: none) and the point counts."""
+    def frame_heights(self, frames: list[DepthFrame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per cell the frames' points' height, weighted by the D455's noise at each point's
+        range (NaN: none), the point counts, and the weighted height's variance."""
         rows, cols = self._limits
         n_cells = rows * cols
         count: np.ndarray = np.zeros(n_cells)  # flat while summing, then (rows, cols)
+        weight: np.ndarray = np.zeros(n_cells)
         total: np.ndarray = np.zeros(n_cells)
         d = self.settings.decimation
         for frame in frames:
@@ -289,18 +311,28 @@ class LiveMap:
             z = oz + z_cam * rays.z[valid]
             keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (z <= self.ceiling_z)
             cell = (row * cols + col)[keep]
+            z_cam2 = np.square(z_cam[keep])
+            w = rays.weight / np.square(z_cam2)
             count += np.bincount(cell, None, n_cells)
-            total += np.bincount(cell, z[keep], n_cells)
+            weight += np.bincount(cell, w, n_cells)
+            total += np.bincount(cell, w * z[keep], n_cells)
         count[~self._region_flat] = 0
+        weight[~self._region_flat] = 0
         total[~self._region_flat] = 0
-        count, total = count.reshape(rows, cols), total.reshape(rows, cols)
+        count = count.reshape(rows, cols)
+        weight, total = weight.reshape(rows, cols), total.reshape(rows, cols)
         # the mean over the cell and its 8 neighbours: a few points of a far camera per cell
-        # are noisy, and a grain surface is smooth at 3 cells (a slope's mean is its centre's)
-        near_count = ndimage.uniform_filter(count, 3, mode="constant")
-        near_total = ndimage.uniform_filter(total, 3, mode="constant")
+        # are noisy, and a grain surface is smooth at 3 cells (a slope's mean is its centre's);
+        # a near camera's point counts for more than a far one's (noise grows with range^2)
+        near_count = ndimage.uniform_filter(count, 3, mode="constant") * 9
+        near_weight = ndimage.uniform_filter(weight, 3, mode="constant") * 9
+        near_total = ndimage.uniform_filter(total, 3, mode="constant") * 9
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(count >= MIN_POINTS, near_total / near_count, np.nan)
-        return mean, count
+            mean = np.where(count >= MIN_POINTS, near_total / near_weight, np.nan)
+            # n points of mean variance n / weight, CORRELATED_SHARE of it common to them all
+            spread = (CORRELATED_SHARE * near_count + 1 - CORRELATED_SHARE) / near_weight
+            variance = np.where(count >= MIN_POINTS, spread, np.inf)
+        return mean, count, variance
 
     # ------------------------------------------------------------ robot
 
@@ -452,13 +484,59 @@ class LiveMap:
             self._nearest = (n_known, tuple(table))
         return np.where(known, self.height, self.height[self._nearest[1]])
 
+    def _trusted(self, box: tuple[slice, slice]) -> np.ndarray:
+        """Within `box`, how high the grain surely is: the mean of the TRUST_CELLS block's
+        values measured with no robot near, each weighted by 1 / its variance, less
+        TRUST_SIGMAS of their RMS (NaN: no such value in the block). A cell a far camera's
+        few points measured once counts for little against ones near cameras measured for
+        many frames; cells noisier than TRUST_RMS_M do not count. The block's RMS is its
+        cells' (their harmonic mean): a far camera's noise is common to pixels a few apart,
+        so neighbouring cells measured by it in the same frames are not independent."""
+        variance = np.maximum(self.safe_variance[box], MIN_VARIANCE_M2)
+        good = np.isfinite(self.safe[box]) & (variance <= TRUST_RMS_M**2)
+        weight = np.where(good, MIN_VARIANCE_M2 / variance, 0.0)  # 1 at best, never near 0
+        value = np.where(good, self.safe[box], 0.0)
+        total = ndimage.uniform_filter(weight * value, TRUST_CELLS, mode="constant")
+        norm = ndimage.uniform_filter(weight, TRUST_CELLS, mode="constant")
+        cells = ndimage.uniform_filter(good.astype(np.float64), TRUST_CELLS, mode="constant")
+        # running sums: a block with no good cell sums to rounding error, far below the least
+        # weight a good cell has
+        least = MIN_VARIANCE_M2 / TRUST_RMS_M**2 / TRUST_CELLS**2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms = np.sqrt(MIN_VARIANCE_M2 * cells / norm)
+            return np.where(norm > least / 2, total / norm - TRUST_SIGMAS * rms, np.nan)
+
+    def _held_at(self, cells: np.ndarray, lowest: bool = False) -> np.ndarray:
+        """For `cells` the robot holds, the trusted value (`_trusted`) at the nearest cell
+        that has one: the grain beside the robot as the cameras measured it well with no robot
+        near, not a far camera's one noisy reading or a value taken with the robot beside it,
+        which its rim, noise and mixed pixels raise (NaN: none near). `lowest`: the lowest
+        trusted value within TRUST_CELLS of that cell (for a cell never measured: beside a
+        heap's foot, which a far camera's range noise blurs upwards, the flat one)."""
+        rows, cols = np.nonzero(cells)
+        s = self.settings
+        reach = s.robot_radius_m + 2 * s.robot_margin_m
+        pad = int(np.ceil(reach / self.grid.step)) + 2 * TRUST_CELLS
+        box = (
+            slice(max(rows.min() - pad, 0), rows.max() + pad + 1),
+            slice(max(cols.min() - pad, 0), cols.max() + pad + 1),
+        )
+        trusted = self._trusted(box)
+        known = np.isfinite(trusted)
+        if not known.any():
+            return np.full(len(rows), np.nan)
+        if lowest:
+            trusted = ndimage.minimum_filter(np.where(known, trusted, np.inf), TRUST_CELLS)
+        table = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
+        return trusted[tuple(table)][rows - box[0].start, cols - box[1].start]
+
     def update(
         self, frames: list[DepthFrame], now_s: float, seen: Sequence[RobotSighting] = ()
     ) -> LiveUpdate:
         """Fold the newest frames, taken at `now_s` (any clock in seconds), into the cells and
         make the next map; `seen`, the model's robot sightings, are held as the depth ones."""
         s = self.settings
-        frame, count = self.frame_heights(frames)
+        frame, count, noise = self.frame_heights(frames)
         # a lone sparse cell at the edge of a shadow holds points depth noise carried past the
         # crest that casts it, and reads high: it counts only with data all around it
         measured = np.isfinite(frame)
@@ -502,7 +580,8 @@ class LiveMap:
             known = np.where(np.isfinite(self.safe[box]), self.safe[box], self.height[box])
             robust = ndimage.median_filter(known, size=ROBUST_CELLS, mode="nearest")
             here = onset[box]
-            self.height[box][here] = np.fmin(self.height[box][here], robust[here])
+            lowest = np.fmin(robust[here], self._held_at(onset))
+            self.height[box][here] = np.fmin(self.height[box][here], lowest)
         update = measured & ~held
         delta = frame - self.height
         side = np.where(update & (np.abs(delta) > s.reset_m), np.sign(delta), 0).astype(np.int8)
@@ -514,17 +593,27 @@ class LiveMap:
         replace = update & (~np.isfinite(self.height) | ~self.seen | confirmed)
         blend = update & ~replace & (side == 0)
         self.height[replace] = frame[replace]
+        self.variance[replace] = noise[replace]
         self.frames[replace] = 1
         # a plain mean over a cell's first frames, then the exponential average
         self.frames[blend] = np.minimum(self.frames[blend] + 1, np.iinfo(np.int16).max)
         weight = np.maximum(s.smoothing, 1.0 / self.frames[blend])
         self.height[blend] += weight * delta[blend]
+        self.variance[blend] = (
+            np.square(1 - weight) * self.variance[blend] + np.square(weight) * noise[blend]
+        )
         self.seen |= update
         self.measured_at[update] = now_s
         clear = update & ~near
         self.safe[clear] = self.height[clear]
+        self.safe_variance[clear] = self.variance[clear]
 
         heights = np.where(self.region, self._filled(), np.nan)
+        # a held cell never measured with no robot near (one the robot has stood on since the
+        # session began) has no value of its own to keep: the trusted one nearest to it
+        unknown = held & ~np.isfinite(self.safe)
+        if unknown.any():
+            heights[unknown] = np.fmin(heights[unknown], self._held_at(unknown, lowest=True))
         changed = (
             self.region & np.isfinite(heights) & ~(np.abs(heights - self.reported) <= s.change_m)
         )
