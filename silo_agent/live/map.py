@@ -311,8 +311,9 @@ class LiveMap:
             z = oz + z_cam * rays.z[valid]
             keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (z <= self.ceiling_z)
             cell = (row * cols + col)[keep]
-            z_cam2 = np.square(z_cam[keep])
-            w = rays.weight / np.square(z_cam2)
+            w = np.square(z_cam[keep])
+            np.square(w, out=w)
+            np.divide(rays.weight, w, out=w)  # 1 / its depth variance
             count += np.bincount(cell, None, n_cells)
             weight += np.bincount(cell, w, n_cells)
             total += np.bincount(cell, w * z[keep], n_cells)
@@ -514,9 +515,10 @@ class LiveMap:
         trusted value within TRUST_CELLS of that cell (for a cell never measured: beside a
         heap's foot, which a far camera's range noise blurs upwards, the flat one)."""
         rows, cols = np.nonzero(cells)
-        s = self.settings
-        reach = s.robot_radius_m + 2 * s.robot_margin_m
-        pad = int(np.ceil(reach / self.grid.step)) + 2 * TRUST_CELLS
+        pad = 2 * TRUST_CELLS  # a newly held cell's nearest trusted one is close by ...
+        if lowest:  # ... one never measured may lie under the robot's whole disc and margin
+            s = self.settings
+            pad += int(np.ceil((s.robot_radius_m + 2 * s.robot_margin_m) / self.grid.step))
         box = (
             slice(max(rows.min() - pad, 0), rows.max() + pad + 1),
             slice(max(cols.min() - pad, 0), cols.max() + pad + 1),
@@ -527,8 +529,15 @@ class LiveMap:
             return np.full(len(rows), np.nan)
         if lowest:
             trusted = ndimage.minimum_filter(np.where(known, trusted, np.inf), TRUST_CELLS)
-        table = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
-        return trusted[tuple(table)][rows - box[0].start, cols - box[1].start]
+        here = (rows - box[0].start, cols - box[1].start)
+        value = trusted[here]
+        missing = ~known[here]
+        if missing.any():  # the nearest trusted cell's (a distance transform: only if needed)
+            table = ndimage.distance_transform_edt(
+                ~known, return_distances=False, return_indices=True
+            )
+            value[missing] = trusted[tuple(axis[here][missing] for axis in table)]
+        return value
 
     def update(
         self, frames: list[DepthFrame], now_s: float, seen: Sequence[RobotSighting] = ()
@@ -593,20 +602,23 @@ class LiveMap:
         replace = update & (~np.isfinite(self.height) | ~self.seen | confirmed)
         blend = update & ~replace & (side == 0)
         self.height[replace] = frame[replace]
-        self.variance[replace] = noise[replace]
         self.frames[replace] = 1
         # a plain mean over a cell's first frames, then the exponential average
         self.frames[blend] = np.minimum(self.frames[blend] + 1, np.iinfo(np.int16).max)
         weight = np.maximum(s.smoothing, 1.0 / self.frames[blend])
         self.height[blend] += weight * delta[blend]
-        self.variance[blend] = (
-            np.square(1 - weight) * self.variance[blend] + np.square(weight) * noise[blend]
-        )
+        # the running value's variance, through the same weights (grid-wide: cheaper than
+        # gathering the blended cells)
+        share = np.maximum(s.smoothing, 1.0 / np.maximum(self.frames, 1))
+        with np.errstate(invalid="ignore"):  # inf x 0 in cells neither blended nor measured
+            blended = np.square(1 - share) * self.variance + np.square(share) * noise
+        np.copyto(self.variance, blended, where=blend)
+        np.copyto(self.variance, noise, where=replace)
         self.seen |= update
         self.measured_at[update] = now_s
         clear = update & ~near
         self.safe[clear] = self.height[clear]
-        self.safe_variance[clear] = self.variance[clear]
+        np.copyto(self.safe_variance, self.variance, where=clear)
 
         heights = np.where(self.region, self._filled(), np.nan)
         # a held cell never measured with no robot near (one the robot has stood on since the
