@@ -164,6 +164,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=16.0)
     parser.add_argument("--warm-up-s", type=float, default=3.0)
     parser.add_argument("--setups", nargs="+", default=list(SETUPS))
+    parser.add_argument("--seed", type=int, default=0, help="the scene's noise draws")
     parser.add_argument("--cpu", type=int, default=0, help="pin to this CPU (-1: do not pin)")
     parser.add_argument("--note", default="", help="a provenance line, e.g. machine load")
     parser.add_argument("--out", type=Path)
@@ -175,7 +176,8 @@ def main() -> None:
     lines = header("Live map with the raking robot", args.note)
     lines += [
         "",
-        f"Moving-robot scene, {args.seconds:g} s at {RATE_HZ:g} Hz ({len(times)} maps), 2 cm grid "
+        f"Moving-robot scene (noise seed {args.seed}), {args.seconds:g} s at {RATE_HZ:g} Hz "
+        f"({len(times)} maps), 2 cm grid "
         f"over 6 x 6 m, default `[live]`; mixed pixels along depth edges (half the edge pixels). "
         f"RMS: observed cells > {AWAY_M} m outside the footprint; footprint: the map's highest "
         f"cell above the grain under the robot (the worst map), and the median cell's (the "
@@ -189,7 +191,7 @@ def main() -> None:
     ]
     for name in args.setups:
         views, width, height = SETUPS[name]
-        rig = RobotRig(views=views, width=width, height=height)
+        rig = RobotRig(views=views, width=width, height=height, seed=args.seed)
         config = config_for(rig)
         problem = session_problem(config, [v.serial for v in rig.views])
         frames = render(rig, times)
