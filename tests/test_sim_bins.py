@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from silo_agent.sim.camera import NoiseModel, d455_intrinsics
+from silo_agent.sim.camera import NoiseModel, d455_intrinsics, noisy_depth
 from silo_agent.sim.grains import GRAINS
 from silo_agent.sim.layouts import look_at, view_pose
 from silo_agent.sim.scenes import bin_scene, make_scene, numeric_volume
@@ -140,6 +140,18 @@ def test_bin_noise_is_about_two_percent_at_four_metres_and_grows_with_range_squa
     assert 0.015 < at_4 / 4.0 < 0.025
     assert float(noise.rms_m(8.0, 440.0)) == pytest.approx(4 * at_4)
     assert noise.max_depth_m >= 12.0  # the far wall of a 10 m bin is ~10 m away
+
+
+def test_stereo_noise_is_in_disparity_so_far_depths_read_far_on_average() -> None:
+    """A block matcher errs in disparity: the mean inverse depth is right and the mean depth
+    reads sigma^2 / z far (2 cm at 9 m here); the RMS is the datasheet's z^2 model."""
+    noise = SimRig(make_scene("bin-heap")).noise
+    depth = np.full((2000, 2000), 9.0)
+    measured = noisy_depth(depth, 440.0, noise, np.random.default_rng(5))
+    sigma = float(noise.rms_m(9.0, 440.0))
+    assert float(np.std(measured)) == pytest.approx(sigma, rel=0.05)
+    assert float(np.mean(1.0 / measured)) == pytest.approx(1.0 / 9.0, rel=1e-3)
+    assert float(np.mean(measured)) - 9.0 == pytest.approx(sigma**2 / 9.0, abs=0.006)
 
 
 def test_measured_wall_scatter_follows_the_noise_model() -> None:

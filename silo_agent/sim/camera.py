@@ -1,7 +1,9 @@
 """A virtual D455: pixel rays, the stereo noise model, the artefacts a real one shows.
 
-Depth RMS grows with the square of depth (stereo: sigma_z = z² · subpixel / (f · baseline)),
-half of its variance spatially correlated (the blobs a block matcher makes), then quantised to
+The error is a stereo camera's: Gaussian in disparity (sub-pixel matching error, the same at
+every range), so the depth RMS grows with the square of depth (sigma_z = z² · subpixel /
+(f · baseline)) and the depth error is skewed (the mean depth reads sigma_z² / z far), half of
+its variance spatially correlated (the blobs a block matcher makes), then quantised to
 the depth unit like the camera's uint16 image. Invalid pixels are those a D455 also loses: the
 left band only the left imager sees (width f · baseline / z px), grazing surfaces, random holes,
 and anything outside the depth range.
@@ -109,11 +111,21 @@ def unit_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float
 def noisy_depth(
     depth: np.ndarray, focal_px: float, noise: NoiseModel, rng: np.random.Generator
 ) -> np.ndarray:
-    """True depth (H, W) plus the stereo error along each pixel's ray."""
+    """True depth (H, W) (0: nothing hit) with the stereo error along each pixel's ray.
+
+    A block matcher errs in disparity, not depth: inverse depth gets Gaussian noise of a
+    constant RMS (`rms_m` at 1 m), so to first order depth gets `rms_m(z)`, and beyond it the
+    skew of depth = f * baseline / disparity (at 9 m, 2.5x the ideal target, the mean depth
+    reads 2 cm far). A disparity pushed to zero or below is no match: depth 0, invalid."""
     share = noise.correlated_share
     unit = np.sqrt(1 - share) * rng.standard_normal(depth.shape)
     unit += np.sqrt(share) * unit_noise(rng, depth.shape, noise.correlation_px)
-    return depth + noise.rms_m(depth, focal_px) * unit
+    hit = depth > 0
+    with np.errstate(divide="ignore"):
+        inverse = np.where(hit, 1.0 / np.where(hit, depth, 1.0), 0.0)
+    inverse -= float(noise.rms_m(1.0, focal_px)) * unit  # first order: depth + rms_m(z) * unit
+    matched = hit & (inverse > 0)
+    return np.where(matched, 1.0 / np.where(matched, inverse, 1.0), 0.0)
 
 
 def dropouts(
