@@ -13,9 +13,10 @@ import pytest
 
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import ReconstructionConfig, parse_config
+from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import Reconstruction, reconstruct, site_from_config
-from silo_agent.reconstruct.walls import wall_rays
-from silo_agent.scan import read_scan, write_scan
+from silo_agent.reconstruct.walls import reseated, wall_rays
+from silo_agent.scan import CameraCloud, read_scan, write_scan
 from silo_agent.sim.camera import NoiseModel
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
@@ -98,9 +99,65 @@ def test_surface_inside_the_hopper_is_measured_there() -> None:
     got, truth = _read("hopper-low", ["A1", "A5"])
     assert truth["level_max_m"] < 0  # the whole surface is under the floor plane
     assert got["level"]["max"] < 0 and got["level"]["min"] < -2.0
-    assert got["level"]["min"] == pytest.approx(truth["level_min_m"], abs=0.15)
+    # two cameras at 9 m: the crater's tip reads 0.16 m deep since points are placed by
+    # their rays (reseated); it read 0.10 m high before (bench/results/accuracy-round-bins.md)
+    assert got["level"]["min"] == pytest.approx(truth["level_min_m"], abs=0.2)
     # the hopper holds all of it: a flat floor at the floor plane would count nothing
     assert got["volume_m3"] == pytest.approx(truth["volume_m3"], rel=0.05)
+
+
+def test_crater_inside_the_hopper_reads_within_one_and_a_half_percent_with_four_cameras() -> None:
+    """Issue 21's hopper target: the surface inside the hopper, four eave cameras at 7-9 m.
+    It read +3.6 % when a crater read 1-2 cm high at 9 m (noise across cells, the disparity
+    mean against a depth-noise simulator) and the fill ran under the hopper's steel."""
+    scene = make_scene("hopper-low")
+    scan = simulate(scene, FOUR, seed=0)
+    result = reconstruct(scan, SETTINGS)
+    truth = scan.extra["truth"]
+    assert result.volume_m3 == pytest.approx(truth["volume_m3"], rel=0.015)
+    assert result.heightmap is not None
+    map_ = result.heightmap
+    xs, ys = Grid.over(scan.site.region, SETTINGS.grid_step_m).centres()
+    steel = scene.site.bin.bottom(xs, ys) if scene.site.bin is not None else None
+    assert steel is not None
+    filled = (map_.inside > 0) & ~map_.observed
+    assert np.any(filled)  # the band by the wall is filled, not measured
+    assert np.all(map_.heights[filled] >= steel[filled] - 1e-4)  # never under the steel
+
+
+def test_points_are_placed_where_their_ray_met_the_surface() -> None:
+    """A flat floor seen at 9 m with noise along the rays: reseated, every point is back
+    above where its ray met the floor, at its measured height."""
+    origin = np.array([0.0, 0.0, 5.0])
+    down = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # camera z down
+    tilt = np.radians(50.0)
+    about_x = np.array(
+        [[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]]
+    )
+    rotation = down @ about_x  # looking down and along +y at 40 deg below the horizon
+    extrinsic = np.eye(4)
+    extrinsic[:3, :3], extrinsic[:3, 3] = rotation, origin
+    rng = np.random.default_rng(3)
+    rays = np.column_stack(
+        [rng.uniform(-0.3, 0.3, 2000), rng.uniform(-0.2, 0.2, 2000), np.ones(2000)]
+    )
+    world = rays @ rotation.T
+    true_depth = -origin[2] / world[:, 2]  # where each ray meets the floor z = 0
+    hit = origin + world * true_depth[:, None]
+    measured = true_depth + rng.normal(0.0, 0.15, 2000)
+    cloud = CameraCloud(
+        "c",
+        (rays * measured[:, None]).astype(np.float32),
+        extrinsic,
+        {"width": 848, "height": 480, "fx": 440.0, "fy": 440.0, "ppx": 424.0, "ppy": 240.0},
+    )
+    grid = Grid.over(np.array([[-8.0, -2.0], [8.0, -2.0], [8.0, 16.0], [-8.0, 16.0]]), 0.1)
+    floor = np.where(grid.inside > 0, 0.0, np.nan)
+    moved = reseated(cloud, grid, floor, 2.5).points_in_silo()
+    before = cloud.points_in_silo()
+    assert np.max(np.hypot(*(before[:, :2] - hit[:, :2]).T)) > 0.15  # noise moved them
+    assert np.allclose(moved[:, :2], hit[:, :2], atol=2e-3)
+    assert np.allclose(moved[:, 2], before[:, 2], atol=1e-4)
 
 
 def test_noise_free_wall_pixels_are_all_dropped_and_grain_kept() -> None:

@@ -37,7 +37,7 @@ from silo_agent.reconstruct.cells import EPS_MAX_M, clustered_means, voxel_downs
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.reconstruct.walls import wall_free, wall_rays, with_points
+from silo_agent.reconstruct.walls import reseated, wall_free, wall_rays, with_points
 from silo_agent.scan import Scan, Site
 
 __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
@@ -46,9 +46,9 @@ EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted
 EDGE_DENSITY_RATIO = 0.5
 SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spikes)
 BIN_DENOISE_SCALE_M = 0.5  # bins: noise blobs of ~0.2 m at 8-10 m must not be clipped
-BIN_DENOISE_SCALE_M = 0.5  # bins: noise blobs of ~0.2 m at 8-10 m must not be clipped
 BIN_EPS_MAX_M = 1.0  # a bin's grain is seen at up to ~10 m, with up to ~0.5 m of noise
 WALL_PASS_STEP_M = 0.10  # grid of the first pass that finds the grain height at the wall
+WALL_BAND_M = 0.3  # a bin's cells this close to the wall are filled, not measured (_wall_band)
 
 
 @dataclass
@@ -193,6 +193,23 @@ def _without_spikes(
     return np.where(spikes, opened, filled), observed & ~spikes
 
 
+def _wall_band(grid: Grid, site: Site, observed: np.ndarray) -> np.ndarray:
+    """A bin's cells within WALL_BAND_M of its wall (none without a bin, or if nothing else
+    was measured): they are filled from the grain inside, not measured.
+
+    Depth noise moves a point along its ray: at 8-10 m from an eave camera, 0.1-0.3 m across
+    the floor. Away from the wall a cell loses as many points to its neighbours as it gains;
+    by the far wall it gains the points noise pushed outward and down from nearer grain but
+    none pushed inward from beyond the wall (those rays met the wall): the band reads low,
+    by 5-15 cm at 9 m (bench/results/accuracy-round-bins.md), more than its share of the
+    volume. The grain inside continues to the wall (the fill), held above a hopper's steel.
+    """
+    if site.bin is None:
+        return np.zeros(grid.shape, dtype=bool)
+    band = (site.bin.wall_distance(*grid.centres()) < WALL_BAND_M) & (grid.inside > 0)
+    return band if np.any(observed & ~band) else np.zeros(grid.shape, dtype=bool)
+
+
 def _excluding(fused: FusedCloud, discs: Sequence[tuple[float, float, float]]) -> FusedCloud:
     """`fused` without the points inside any of the (x, y, radius) discs."""
     keep = points_outside(fused.points, discs)
@@ -257,9 +274,9 @@ def reconstruct(
         )
     else:
         grid = Grid.over(site.region, rough_settings.grid_step_m)
-        cameras, dropped = wall_free(
-            scan.cameras, rays, site.bin, grid, rough.heightmap.heights.astype(np.float64)
-        )
+        first = rough.heightmap.heights.astype(np.float64)
+        cameras, dropped = wall_free(scan.cameras, rays, site.bin, grid, first)
+        cameras = [reseated(c, grid, first, settings.depth_noise_factor) for c in cameras]
     walls_s = time.perf_counter() - started
     result = _reconstruct(replace(scan, cameras=cameras), settings, site, exclude, calibration)
     result.timings_s = {"walls": walls_s, **result.timings_s}
@@ -321,6 +338,9 @@ def _reconstruct(
     clock.lap("clustered_means")
     observed = np.isfinite(cells.height) & (grid.inside > 0)
     observed = _trusted_cells(grid, observed, cells.points)
+    band = _wall_band(grid, site, observed)
+    seen = observed & band  # measured cells of the band: covered, though filled
+    observed &= ~band
     parameters = {
         "voxel_size_m": settings.voxel_size_m,
         "cluster_eps_m": cells.eps_m,
@@ -357,6 +377,9 @@ def _reconstruct(
     heights = np.where(grid.inside > 0, filled, np.nan)
     if site.bin is not None and site.base == "floor":
         base = site.bin.bottom(*grid.centres())  # a hopper's cone counts, a sloped floor too
+        # a fill is no surface under the bin's steel (the membrane runs flat into the wall,
+        # where a hopper's cone rises); measured cells keep their noise for `counted_heights`
+        heights = np.where(~observed & (heights < base), base, heights)
     else:
         base = base_surface(grid, heights, site.base, site.floor_z)
     counted = counted_heights(
@@ -377,6 +400,7 @@ def _reconstruct(
         clock,
         counted=counted,
         base=base_plane(grid, heights, site.base, site.floor_z),
+        seen=observed | seen if site.bin is not None else None,
     )
     result.points["after_downsampling"] = len(points)
     result.registration = registration
@@ -396,10 +420,13 @@ def _result(
     clock: _Clock,
     counted: np.ndarray | None = None,
     base: tuple[float, float, float] | None = None,
+    seen: np.ndarray | None = None,
 ) -> Reconstruction:
-    """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map."""
+    """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map;
+    `seen` (default `observed`): the cells the cameras covered, for the coverage."""
     region_area = float(np.sum(grid.inside))
-    coverage = float(np.sum(grid.inside * observed) / region_area)
+    covered = observed if seen is None else seen
+    coverage = float(np.sum(grid.inside * covered) / region_area)
     valid, reason = True, None
     if volume is None:
         valid, reason = False, "no measured point inside the region"
