@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import time
 import urllib.error
 import urllib.request
 from dataclasses import replace
@@ -168,3 +169,42 @@ def test_the_server_on_loopback_without_a_token(tmp_path: Path, cone_scan_2: Sca
         server.stop()
     with pytest.raises(OSError):
         get(base + "/api/state")
+
+
+def test_the_latest_scan_is_drawn_before_anyone_asks(tmp_path: Path, cone_scan_2: Scan, analysed):
+    """The server draws each new latest scan's map on its own, so a first visit after a scan
+    finds the picture drawn: the picture it then serves is the one drawn ahead."""
+    cache, ids = cache_with_scans(tmp_path / "scans", cone_scan_2, analysed)
+    config = parse_config(
+        {
+            "silo": {"id": SILO, "region": cone_scan_2.site.region.tolist()},
+            "cameras": [{"serial": "A1", "source": "sim", "view": "A1"}],
+        },
+        "t",
+    )
+    status = {"cameras": [], "alarms": {}, "events": []}
+    server = WebServer.bind(WebConfig(enabled=True, port=free_port()))
+    server.serve(Sources(Archive(cache), lambda: config, lambda: status, LiveFeed()))
+    assert server._pages is not None
+    kept = server._pages._pictures
+
+    def drawn(scan_id: str) -> bytes:
+        end = time.monotonic() + 60
+        while ("map", scan_id) not in kept:
+            assert time.monotonic() < end, f"{scan_id}'s map not drawn ahead"
+            time.sleep(0.05)
+        return kept[("map", scan_id)][0]
+
+    try:
+        assert drawn(ids[2]) == get(f"http://127.0.0.1:{server.port}/api/map/{ids[2]}.png")[1]
+        assert ("map", ids[0]) not in kept  # only the latest: older scans wait for a visit
+        # a scan lands while the server runs: it is drawn too, without a request
+        later = NOW + timedelta(minutes=5)
+        scan_id = f"{SILO}-{later:%Y%m%dT%H%M%SZ}"
+        copy = replace(cone_scan_2, scan_id=scan_id, captured_at=f"{later:%Y-%m-%dT%H:%M:%SZ}")
+        path = cache.write_scan(replace(copy, silo_id=SILO), {})
+        summary = {**summary_of(analysed, copy, {}).to_json(), "scan_id": scan_id}
+        cache.add_result(path, summary, analysed.reconstruction.heightmap, {})
+        assert drawn(scan_id).startswith(b"\x89PNG")
+    finally:
+        server.stop()

@@ -60,6 +60,7 @@ log = structlog.get_logger(__name__)
 
 COOKIE = "silo_agent_token"
 EVENT_POLL_S = 0.5  # how often an open page's event stream looks for a change
+PREPARE_POLL_S = 1.0  # how often the server looks for a new scan to draw before it is asked
 KEPT_PICTURES = 8
 RENDER_NICENESS = 10  # the picture thread yields the CPU to a running scan
 ASSETS = {
@@ -222,10 +223,8 @@ class Pages:
         records = await self._off_loop(self.sources.archive.records)
         return JSONResponse([r.to_json() for r in reversed(records)])
 
-    async def api_map(self, request: Request) -> Response:
-        scan_id, kind = request.path_params["scan_id"], request.path_params["kind"]
-        if kind not in ("png", "json"):
-            raise ScanNotFound(f"{scan_id}.{kind}")
+    def scan_map(self, scan_id: str) -> tuple[bytes, MapLayout | None]:
+        """One scan's map picture and layout, drawn once and kept (call in `pool`)."""
 
         def draw() -> tuple[bytes, MapLayout | None]:
             view = self.sources.archive.view(scan_id)
@@ -239,7 +238,23 @@ class Pages:
                 cameras=view.cameras,
             )
 
-        png, layout = await self._off_loop(lambda: self._kept(("map", scan_id), draw))
+        return self._kept(("map", scan_id), draw)
+
+    def prepare(self, scan_id: str) -> None:
+        """Draw a scan's map before anyone asks (call in `pool`): the first visit after a scan
+        finds its picture drawn."""
+        try:
+            self.scan_map(scan_id)
+        except ScanNotFound:
+            pass  # a result without a height map: nothing to draw
+        except Exception:  # the page must never take the agent down; a request will retry
+            log.exception("cannot draw the latest scan's map", scan_id=scan_id)
+
+    async def api_map(self, request: Request) -> Response:
+        scan_id, kind = request.path_params["scan_id"], request.path_params["kind"]
+        if kind not in ("png", "json"):
+            raise ScanNotFound(f"{scan_id}.{kind}")
+        png, layout = await self._off_loop(lambda: self.scan_map(scan_id))
         if kind == "png":
             return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
         assert layout is not None
@@ -417,6 +432,8 @@ class WebServer:
         self._thread: threading.Thread | None = None
         self._pages: Pages | None = None
         self._app: ASGIApp | None = None
+        self._stopping = threading.Event()
+        self._watcher: threading.Thread | None = None
 
     @classmethod
     def bind(cls, cfg: WebConfig) -> WebServer:
@@ -453,11 +470,33 @@ class WebServer:
         self._app, self._pages = app_for(sources, self.token)
         self._run()
         self._pages.pool.submit(_warm_up)  # matplotlib's import (~1 s) off the first request
+        self._watcher = threading.Thread(
+            target=self._prepare_new_scans, args=(self._pages,), name="web-prepare", daemon=True
+        )
+        self._watcher.start()
         log.info(
             "web page serving",
             url=f"http://{self.cfg.host}:{self.port}/",
             token=self.token is not None,
         )
+
+    def _prepare_new_scans(self, pages: Pages) -> None:
+        """Each new latest scan's map drawn in the picture thread once it is listed (a
+        directory listing a second, as an open page's event stream does); ends with the
+        server."""
+        drawn: str | None = None
+        while True:
+            try:
+                latest = pages.sources.archive.latest()
+                if latest is not None and latest.scan_id != drawn:
+                    pages.pool.submit(pages.prepare, latest.scan_id)
+                    drawn = latest.scan_id
+            except RuntimeError:  # the pool was shut down: the server is stopping
+                return
+            except Exception:
+                log.exception("cannot list the audit cache for the page")
+            if self._stopping.wait(PREPARE_POLL_S):
+                return
 
     def _run(self) -> None:
         assert self._app is not None
@@ -496,6 +535,7 @@ class WebServer:
         self._run()
 
     def stop(self) -> None:
+        self._stopping.set()
         if self._server is not None:
             self._server.should_exit = True
         if self._thread is not None:

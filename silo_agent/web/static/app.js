@@ -193,6 +193,9 @@ function connected(ok) {
   badge.classList.toggle("ok", ok);
 }
 
+// the first state at once, not after the event stream's first message; apply() draws each
+// scan's map once, whichever of the two arrives first (the stream reports the connection)
+getJSON("api/state").then(apply).catch(() => {});
 const events = new EventSource("api/events");
 events.addEventListener("state", (e) => { connected(true); apply(JSON.parse(e.data)); });
 events.onerror = () => connected(false);
