@@ -317,6 +317,11 @@ def in_process(tmp_path, broker, collector_factory) -> Iterator[InProcess]:
 LIVE_SECTION = "\n[live]\ngrid_step_m = 0.1\nrate_hz = 4.0\ncoverage_check = false\n"
 
 
+# the killed thread's exception is the test's doing: pytest need not report it
+KILLED_THREAD = pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+
+
+@KILLED_THREAD
 @pytest.mark.parametrize("name", ["mqtt", "metrics", "scan", "live"])
 def test_a_killed_internal_thread_is_restarted_or_reported(in_process: InProcess, name: str):
     """mqtt and metrics are restarted; a killed scan is reported failed, a killed live
@@ -355,6 +360,7 @@ def test_a_killed_internal_thread_is_restarted_or_reported(in_process: InProcess
     assert run.main.is_alive()
 
 
+@KILLED_THREAD
 def test_a_thread_that_keeps_dying_stops_the_agent_with_status_1(in_process: InProcess):
     for _ in range(THREAD_RESTARTS + 1):
         kill_thread(_thread("mqtt"))  # returns once it is dead; the agent restarts it, or ends
