@@ -15,7 +15,7 @@ from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import ReconstructionConfig, parse_config
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import Reconstruction, reconstruct, site_from_config
-from silo_agent.reconstruct.walls import reseated, wall_rays
+from silo_agent.reconstruct.walls import FirstSurface, reseated, wall_rays
 from silo_agent.scan import CameraCloud, read_scan, write_scan
 from silo_agent.sim.camera import NoiseModel
 from silo_agent.sim.scenes import make_scene
@@ -153,7 +153,7 @@ def test_points_are_placed_where_their_ray_met_the_surface() -> None:
     )
     grid = Grid.over(np.array([[-8.0, -2.0], [8.0, -2.0], [8.0, 16.0], [-8.0, 16.0]]), 0.1)
     floor = np.where(grid.inside > 0, 0.0, np.nan)
-    moved = reseated(cloud, grid, floor, 2.5).points_in_silo()
+    moved = reseated(cloud, FirstSurface.of(grid, floor), 2.5).points_in_silo()
     before = cloud.points_in_silo()
     assert np.max(np.hypot(*(before[:, :2] - hit[:, :2]).T)) > 0.15  # noise moved them
     assert np.allclose(moved[:, :2], hit[:, :2], atol=2e-3)

@@ -14,10 +14,11 @@ from typing import cast
 import numpy as np
 import pytest
 
+from silo_agent.base.d455 import BASELINE_M as D455_BASELINE_M
 from silo_agent.config import Config, LiveConfig, parse_config
 from silo_agent.grid.grid import Grid
 from silo_agent.live.coverage import session_problem
-from silo_agent.live.map import D455_BASELINE_M, DepthFrame, LiveMap, mixed_pixels
+from silo_agent.live.map import DepthFrame, LiveMap, mixed_pixels
 from silo_agent.service.live_control import LiveControl
 from silo_agent.sim.robot import RobotRig
 from silo_agent.telemetry.client import CommandRejected, Telemetry

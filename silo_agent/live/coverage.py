@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from silo_agent.base.d455 import depth_rms_m
 from silo_agent.config import Config
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
@@ -29,8 +30,6 @@ MIN_VIEWS = 2
 MIN_SHARE = 0.9
 MAX_NOISE_SHARE = 0.8
 D455_FOCAL_PX_848 = 431.0  # nominal depth focal length at 848 px wide
-D455_SUBPIXEL = 0.08
-D455_BASELINE_M = 0.095
 D455_RANGE_M = (0.4, 6.0)
 CHECK_STEP_M = 0.05
 
@@ -89,7 +88,7 @@ def good_views(config: Config, views: list[CameraView], z: float) -> tuple[np.nd
             v = camera[..., 1] / depth * f + (view.height - 1) / 2
         seen = (depth >= D455_RANGE_M[0]) & (depth <= D455_RANGE_M[1])
         seen &= (u >= 0) & (u < view.width) & (v >= 0) & (v < view.height)
-        noise = np.square(depth) * D455_SUBPIXEL / (f * D455_BASELINE_M)
+        noise = depth_rms_m(depth, f)
         count += seen & (noise <= limit)
     return count, grid
 

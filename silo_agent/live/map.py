@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import ndimage
 
+from silo_agent.base.d455 import BASELINE_M, CORRELATED_SHARE, depth_rms_m
 from silo_agent.config import LiveConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
@@ -54,10 +55,6 @@ ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the ope
 MIN_POINTS = 1  # a frame's cell height needs this many points
 SPARSE_NEIGHBOURS = 4  # a one-point cell needs this many measured neighbours (of 8)
 REFILL_GROWTH = 0.01  # share of the grid newly measured that renews the hole-filling table
-D455_BASELINE_M = 0.095  # stereo baseline: depth edges are judged in disparity pixels
-D455_SUBPIXEL = 0.08  # disparity RMS (px): depth RMS z^2 x this / (f x baseline)
-CORRELATED_SHARE = 0.5  # of a D455's depth noise variance, common to pixels a few apart:
-# more points of one frame do not average it down (sim/camera.py NoiseModel, the same)
 TRUST_RMS_M = 0.05  # a cell measured within this RMS with no robot near may stand under it
 TRUST_SIGMAS = 0.75  # ... at most this many RMS below its block's noise-weighted mean
 TRUST_CELLS = 11  # a newly held cell's value: at most its block's trusted, noise-weighted mean
@@ -180,7 +177,7 @@ def mixed_pixels(depth: np.ndarray, unit_m: float, fx: float, edge_px: float) ->
     same size in it at every range."""
     valid = depth > 0
     with np.errstate(divide="ignore"):
-        disparity = np.float32(fx * D455_BASELINE_M / unit_m) / depth.astype(np.float32)
+        disparity = np.float32(fx * BASELINE_M / unit_m) / depth.astype(np.float32)
     low = ndimage.minimum_filter(np.where(valid, disparity, np.inf), 3)
     high = ndimage.maximum_filter(np.where(valid, disparity, 0.0), 3)
     spread = high - low
@@ -226,10 +223,10 @@ class _Rays:
             np.ascontiguousarray(silo[:, k], dtype=np.float32) for k in range(3)
         )
         self.origin = np.asarray(frame.extrinsic, dtype=np.float32)[:3, 3]
-        # a point's weight is 1 / its depth variance, (z^2 x D455_SUBPIXEL / (f x baseline))^2:
+        # a point's weight is 1 / its depth variance, depth_rms_m(z)^2 = (z^2 x this)^2:
         # this / z^4 (its height moves along the ray too, but a grazing far ray's small rise
         # meets slopes, shadows' edges and sparse sampling, which that model does not know)
-        per_depth = D455_SUBPIXEL / (frame.fx * D455_BASELINE_M)
+        per_depth = depth_rms_m(1.0, frame.fx)
         self.weight = np.float32(1.0 / np.square(per_depth))
         self.key = _rays_key(frame)
 

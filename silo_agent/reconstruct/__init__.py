@@ -37,7 +37,7 @@ from silo_agent.reconstruct.cells import EPS_MAX_M, clustered_means, voxel_downs
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.reconstruct.walls import reseated, wall_free, wall_rays, with_points
+from silo_agent.reconstruct.walls import FirstSurface, reseated, wall_free, wall_rays, with_points
 from silo_agent.scan import Scan, Site
 
 __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
@@ -276,7 +276,8 @@ def reconstruct(
         grid = Grid.over(site.region, rough_settings.grid_step_m)
         first = rough.heightmap.heights.astype(np.float64)
         cameras, dropped = wall_free(scan.cameras, rays, site.bin, grid, first)
-        cameras = [reseated(c, grid, first, settings.depth_noise_factor) for c in cameras]
+        surface = FirstSurface.of(grid, first)  # once: it is the same for every camera
+        cameras = [reseated(c, surface, settings.depth_noise_factor) for c in cameras]
     walls_s = time.perf_counter() - started
     result = _reconstruct(replace(scan, cameras=cameras), settings, site, exclude, calibration)
     result.timings_s = {"walls": walls_s, **result.timings_s}

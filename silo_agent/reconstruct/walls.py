@@ -20,13 +20,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from silo_agent.base.d455 import depth_rms_m
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.smooth import masked_smooth
 from silo_agent.scan import CameraCloud
 
-D455_SUBPIXEL = 0.08  # disparity RMS (px) of the D455 on an ideal target
-D455_BASELINE_M = 0.095
 SMOOTHING_PX_AT_848 = 9  # box window over the depth image, scaled with the image width
 SMOOTHED_NOISE_SHARE = 0.5  # D455 noise is spatially correlated: a 9 px box keeps about half
 FIRST_PASS_SIGMAS = 3.0
@@ -47,11 +46,6 @@ class WallRays:
     wall_y: np.ndarray
     wall_z: np.ndarray
     clear_of_wall: np.ndarray  # (N,) bool
-
-
-def depth_rms_m(depth_m: np.ndarray, focal_px: float, factor: float) -> np.ndarray:
-    """The D455 depth RMS at a depth, `factor` times the ideal target's."""
-    return factor * np.square(depth_m) * D455_SUBPIXEL / (focal_px * D455_BASELINE_M)
 
 
 def smoothed_depth(
@@ -169,11 +163,29 @@ def wall_free(
     return out, dropped
 
 
-def reseated(
-    cloud: CameraCloud, grid: Grid, heights: np.ndarray, noise_factor: float
-) -> CameraCloud:
-    """Each point moved along its own ray to where that ray meets a first surface (`heights`,
-    a filled map on `grid`), keeping its measured height above that surface.
+@dataclass(frozen=True)
+class FirstSurface:
+    """The first pass's surface as `reseated` reads it, built once for all cameras: its level
+    (measured where measured, else smoothed) and its slope (from the smoothed surface)."""
+
+    grid: Grid
+    level: np.ndarray
+    slope_x: np.ndarray
+    slope_y: np.ndarray
+
+    @classmethod
+    def of(cls, grid: Grid, heights: np.ndarray) -> FirstSurface:
+        known = np.isfinite(heights)
+        smooth = masked_smooth(heights, known, max(RESEAT_SCALE_M / grid.step, 1.0))
+        smooth = np.where(np.isfinite(smooth), smooth, np.nanmean(smooth))
+        grad_y, grad_x = np.gradient(smooth, grid.step)  # the slope from the smoothed surface
+        level = np.where(known, heights, smooth)  # ... the level not: a crater's tip stays sharp
+        return cls(grid, level, grad_x, grad_y)
+
+
+def reseated(cloud: CameraCloud, first: FirstSurface, noise_factor: float) -> CameraCloud:
+    """Each point moved along its own ray to where that ray meets the first surface, keeping
+    its measured height above that surface.
 
     Depth noise moves a point along its ray, and so across the floor: at 8-10 m from an eave
     camera by 0.1-0.3 m. Binned where the noise put it, a cell's points come from its
@@ -188,20 +200,16 @@ def reseated(
     rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
     silo = cloud.points_in_silo().astype(np.float64)
     depth = cloud.points[:, 2].astype(np.float64)
-    known = np.isfinite(heights)
-    smooth = masked_smooth(heights, known, max(RESEAT_SCALE_M / grid.step, 1.0))
-    smooth = np.where(np.isfinite(smooth), smooth, np.nanmean(smooth))
-    grad_y, grad_x = np.gradient(smooth, grid.step)  # the slope from the smoothed surface ...
-    surface = np.where(known, heights, smooth)  # ... the level not: a crater's tip stays sharp
+    grid = first.grid
     at = np.vstack(
         [
             (silo[:, 1] - grid.origin[1]) / grid.step - 0.5,
             (silo[:, 0] - grid.origin[0]) / grid.step - 0.5,
         ]
     )
-    level = ndimage.map_coordinates(surface, at, order=1, mode="nearest")
-    slope_x = ndimage.map_coordinates(grad_x, at, order=1, mode="nearest")
-    slope_y = ndimage.map_coordinates(grad_y, at, order=1, mode="nearest")
+    level = ndimage.map_coordinates(first.level, at, order=1, mode="nearest")
+    slope_x = ndimage.map_coordinates(first.slope_x, at, order=1, mode="nearest")
+    slope_y = ndimage.map_coordinates(first.slope_y, at, order=1, mode="nearest")
     with np.errstate(divide="ignore", invalid="ignore"):
         ray = (silo - origin) / depth[:, None]  # silo-frame ray per unit of camera depth
         rise = slope_x * ray[:, 0] + slope_y * ray[:, 1]  # surface rise per unit depth

@@ -19,6 +19,7 @@ from scipy import ndimage
 from scipy.ndimage import gaussian_filter
 from scipy.special import ndtri
 
+from silo_agent.base.d455 import BASELINE_M, CORRELATED_SHARE, SUBPIXEL_PX
 from silo_agent.sim.mesh import CLUTTER, GRAIN
 from silo_agent.sim.raycast import Hits, Raycaster
 
@@ -54,9 +55,9 @@ def d455_intrinsics(focal_px: float, width: int = 848, height: int = 480) -> Int
 
 @dataclass(frozen=True)
 class NoiseModel:
-    subpixel: float = 0.08
-    baseline_m: float = 0.095
-    correlated_share: float = 0.5  # share of the noise variance that is spatially correlated
+    subpixel: float = SUBPIXEL_PX
+    baseline_m: float = BASELINE_M
+    correlated_share: float = CORRELATED_SHARE
     correlation_px: float = 4.0  # Gaussian sigma of the correlated part
     depth_unit_m: float = 0.001  # D455 default depth unit
     min_depth_m: float = 0.4
