@@ -12,6 +12,7 @@ from silo_agent.config import LiveConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.live.map import DepthFrame, LiveMap, LiveUpdate
 from silo_agent.sim.robot import RakingRobot, RobotPose, RobotRig
+from tests.support.robot import robot_rig
 
 TIMES = np.arange(0.0, 10.5, 0.5)  # the robot climbs the first heap from t ~ 4 s
 WARM_UP = 2  # maps before the running values have averaged the noise down
@@ -35,7 +36,7 @@ def depth_frames(rig: RobotRig, t: float, index: int) -> list[DepthFrame]:
 
 @pytest.fixture(scope="module")
 def run() -> tuple[RobotRig, Grid, LiveMap, list[Step]]:
-    rig = RobotRig()
+    rig = robot_rig()
     site = rig.robot.base.site
     grid = Grid.over(site.region, 0.02)
     live = LiveMap(grid, LiveConfig(), site.ceiling_z)

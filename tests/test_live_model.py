@@ -25,6 +25,7 @@ from silo_agent.live.model import LiveRobotModel
 from silo_agent.live.session import LiveSession
 from silo_agent.sim.robot import ROBOT_SIZE_M, RobotPose, RobotRig
 from silo_agent.telemetry.heightmap_codec import decode_live_heightmap
+from tests.support.robot import robot_rig
 
 IMGSZ = 320
 TIMES = (0.0, 1.5, 3.0, 4.5, 6.0, 7.5)  # on the flat, then up the first heap
@@ -129,7 +130,7 @@ class Step:
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Grid, list[Step]]:
-    rig = RobotRig(width=424, height=240)
+    rig = robot_rig(width=424, height=240)
     model_path = build_robot_model(tmp_path_factory.mktemp("model") / "robot.onnx")
     config = config_for(rig, model_path)
     site = rig.robot.base.site
@@ -219,7 +220,7 @@ def session_run(config: Config, maps: int) -> tuple[list[bytes], str]:
 
 @pytest.fixture(scope="module")
 def small_rig() -> RobotRig:
-    return RobotRig(width=424, height=240)
+    return robot_rig(width=424, height=240)
 
 
 def test_a_session_asks_sim_cameras_for_colour_and_publishes_the_model_robot(

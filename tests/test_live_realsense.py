@@ -14,6 +14,7 @@ from silo_agent.grid.grid import Grid
 from silo_agent.live.map import LiveMap
 from silo_agent.live.session import open_source
 from silo_agent.sim.robot import RobotRig
+from tests.support.robot import robot_rig
 
 TIMES = (0.0, 0.5, 1.0, 1.5)
 
@@ -22,7 +23,7 @@ TIMES = (0.0, 0.5, 1.0, 1.5)
 def recorded(tmp_path_factory) -> tuple[RobotRig, list[list[np.ndarray]], Path]:
     from silo_agent.capture.recording import write_recording
 
-    rig = RobotRig(width=424, height=240)
+    rig = robot_rig(width=424, height=240)
     frames = [[f.depth for f in rig.frames(t, i)] for i, t in enumerate(TIMES)]
     directory = tmp_path_factory.mktemp("live-recordings")
     for k, view in enumerate(rig.views):

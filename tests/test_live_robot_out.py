@@ -23,6 +23,7 @@ from silo_agent.service.live_control import LiveControl
 from silo_agent.sim.robot import RobotRig
 from silo_agent.telemetry.client import CommandRejected, Telemetry
 from silo_agent.telemetry.live_command import LiveCommand, LiveRequest
+from tests.support.robot import robot_rig
 
 TIMES = np.arange(0.0, 10.5, 0.5)
 WARM_UP_S = 3.0  # the robot stands in the bay from the start: nothing is known under it yet
@@ -101,7 +102,7 @@ def test_a_session_that_cannot_keep_the_robot_out_is_refused_saying_why(
 
 @pytest.fixture(scope="module")
 def run_424():
-    rig = RobotRig(width=424, height=240)
+    rig = robot_rig(width=424, height=240)
     site = rig.robot.base.site
     grid = Grid.over(site.region, 0.02)
     live = LiveMap(grid, LiveConfig(), site.ceiling_z)
