@@ -230,10 +230,11 @@ def test_sigterm_stops_cleanly_after_telling_systemd_and_the_watchdog_is_kept(
     assert any(f.startswith("STATUS=last scan silo-d-") and "m³" in f for f in fields)
     pings = [t for t, m in notify.messages if m == "WATCHDOG=1"]
     gaps = [b - a for a, b in itertools.pairwise(pings)]
-    assert 0.9 < sorted(gaps)[len(gaps) // 2] < 1.1  # every 1 s: half of WATCHDOG_USEC
+    assert 0.6 < sorted(gaps)[len(gaps) // 2] < 0.8  # every 0.67 s: a third of WATCHDOG_USEC
     # never near the 2 s after which systemd kills the service. A C call that holds the GIL in
     # the scan thread delays a ping (a simulated scan's open3d ray casting: 0.42 s measured on
-    # an idle core); CI under load once saw 1.57 s against the old 1.5 s bound
+    # an idle core); CI under load once saw 1.57 s against the old 1.5 s bound, and 1.85 s with
+    # pings every half of WATCHDOG_USEC on a machine running two benchmarks beside the suite
     assert max(gaps) < 1.8
 
 

@@ -392,7 +392,9 @@ class Agent:
             max_scans=self.max_scans,
         )
         self.notifier.ready(f"started; silo {config.silo.id}")
-        watchdog_every = (self.notifier.watchdog_s / 2) if self.notifier.watchdog_s else None
+        # a third of WATCHDOG_USEC, not systemd's minimum of a half: a ping that a busy machine or
+        # a GIL-holding C call in the scan thread delays still lands well before the deadline
+        watchdog_every = (self.notifier.watchdog_s / 3) if self.notifier.watchdog_s else None
         next_ping = 0.0
         while True:
             now = time.monotonic()
