@@ -33,7 +33,7 @@ from silo_agent.grid.volume import (
     integrate_counted,
     surface_levels,
 )
-from silo_agent.reconstruct.cells import EPS_MAX_M, clustered_means, voxel_downsample
+from silo_agent.reconstruct.cells import EPS_MAX_M, CellTotals, clustered_means, voxel_downsample
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
@@ -267,17 +267,24 @@ def reconstruct(
         update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
     )
     rough = _reconstruct(replace(scan, cameras=clear), rough_settings, site, exclude, calibration)
+    # what only the wall step needs goes before the second pass: a fresh process pays for every
+    # page it touches, and the rays alone are ~30 bytes a point (200 MB at 8 full-resolution
+    # cameras); each camera's steadied cloud goes as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
         cameras, dropped = (
             clear,
             sum(len(c.points) - len(k.points) for c, k in zip(scan.cameras, clear, strict=True)),
         )
+        del rays
     else:
+        del clear
         grid = Grid.over(site.region, rough_settings.grid_step_m)
         first = rough.heightmap.heights.astype(np.float64)
         cameras, dropped = wall_free(scan.cameras, rays, site.bin, grid, first)
+        del rays
         surface = FirstSurface.of(grid, first)  # once: it is the same for every camera
-        cameras = [reseated(c, surface, settings.depth_noise_factor) for c in cameras]
+        for index in range(len(cameras)):
+            cameras[index] = reseated(cameras[index], surface, settings.depth_noise_factor)
     walls_s = time.perf_counter() - started
     result = _reconstruct(replace(scan, cameras=cameras), settings, site, exclude, calibration)
     result.timings_s = {"walls": walls_s, **result.timings_s}
@@ -314,29 +321,32 @@ def _reconstruct(
 
         heights, observed, volume = baseline_heights(settings, fused, grid, site)
         clock.lap(settings.method)
-        result = _result(scan, site, settings, grid, fused, heights, observed, volume, {}, clock)
+        counts = _PointCounts(fused.raw_count, len(fused.points), len(fused.points))
+        result = _result(scan, site, settings, grid, counts, heights, observed, volume, {}, clock)
         result.registration = registration
         return result
 
+    # each stage drops what the next does not read: a fresh process pays for every page it
+    # touches, and the moments (~45 bytes a (cell, camera) pair) need not outlive their totals
+    # nor the cloud the clustering (the grid stages after it allocate tens of grid arrays)
     points, camera, cell, moments = fused.points, fused.camera, fused.cell, fused.moments
+    raw_count, in_region = fused.raw_count, len(fused.points)
+    del fused
     if settings.voxel_size_m is not None:
         points, camera = voxel_downsample(points, camera, settings.voxel_size_m)
         row, col = grid.cell_index(points[:, 0], points[:, 1])
         cell = row * grid.shape[1] + col
         moments = CellMoments.of(points, camera, cell, moments.n_cells, moments.n_cams)
         clock.lap("voxel_downsample")
+    eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
+    totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
+    del moments
     cells = clustered_means(
-        points,
-        camera,
-        cell,
-        grid,
-        moments,
-        settings.cluster_eps_m,
-        settings.cluster_min_points,
-        settings.max_clusters,
-        BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M,
+        points, camera, cell, grid, totals, settings.cluster_min_points, settings.max_clusters
     )
     clock.lap("clustered_means")
+    counts = _PointCounts(raw_count, in_region, len(points))
+    del points, camera, cell, totals
     observed = np.isfinite(cells.height) & (grid.inside > 0)
     observed = _trusted_cells(grid, observed, cells.points)
     band = _wall_band(grid, site, observed)
@@ -353,7 +363,9 @@ def _reconstruct(
     if settings.fill == "repose":
         parameters["repose_deg"] = round(float(np.degrees(np.arctan(settings.repose_slope))), 3)
     if not np.any(observed):
-        result = _result(scan, site, settings, grid, fused, None, observed, None, parameters, clock)
+        result = _result(
+            scan, site, settings, grid, counts, None, observed, None, parameters, clock
+        )
         result.registration = registration
         return result
     if settings.fill == "bspline":
@@ -393,7 +405,7 @@ def _reconstruct(
         site,
         settings,
         grid,
-        fused,
+        counts,
         heights,
         observed,
         volume,
@@ -403,9 +415,18 @@ def _reconstruct(
         base=base_plane(grid, heights, site.base, site.floor_z),
         seen=observed | seen if site.bin is not None else None,
     )
-    result.points["after_downsampling"] = len(points)
+    result.points["after_downsampling"] = counts.after_downsampling
     result.registration = registration
     return result
+
+
+@dataclass(frozen=True)
+class _PointCounts:
+    """What a result says of the points: read, in the region, after down-sampling."""
+
+    raw: int
+    in_region: int
+    after_downsampling: int
 
 
 def _result(
@@ -413,7 +434,7 @@ def _result(
     site: Site,
     settings: ReconstructionConfig,
     grid: Grid,
-    fused: FusedCloud,
+    counts: _PointCounts,
     heights: np.ndarray | None,
     observed: np.ndarray,
     volume: float | None,
@@ -473,9 +494,9 @@ def _result(
         heightmap=heightmap,
         cameras=[c.serial for c in scan.cameras],
         points={
-            "raw": fused.raw_count,
+            "raw": counts.raw,
             "not_measurements": sum(c.not_measurements for c in scan.cameras),
-            "in_region": len(fused.points),
+            "in_region": counts.in_region,
         },
         parameters=parameters,
         timings_s=clock.laps,
