@@ -17,6 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
+from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.filters import dilate_cross
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.grid import Grid
@@ -37,8 +38,15 @@ from silo_agent.reconstruct.cells import EPS_MAX_M, CellTotals, clustered_means,
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.reconstruct.walls import FirstSurface, reseated, wall_free, wall_rays, with_points
-from silo_agent.scan import Scan, Site
+from silo_agent.reconstruct.walls import (
+    FirstSurface,
+    WallCrossing,
+    reseated,
+    wall_free,
+    wall_rays,
+    with_points,
+)
+from silo_agent.scan import CameraCloud, Scan, Site
 
 __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
 
@@ -261,27 +269,25 @@ def reconstruct(
     if site.bin is None:
         return _reconstruct(scan, settings, site, exclude, calibration)
     started = time.perf_counter()
-    rays = [wall_rays(c, site.bin, settings.depth_noise_factor) for c in scan.cameras]
-    clear = [with_points(c, r.clear_of_wall) for c, r in zip(scan.cameras, rays, strict=True)]
     rough_settings = settings.model_copy(
         update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
     )
+    grid = Grid.over(site.region, rough_settings.grid_step_m)
+    crossings, clear = _wall_crossings(scan.cameras, site.bin, grid, settings.depth_noise_factor)
     rough = _reconstruct(replace(scan, cameras=clear), rough_settings, site, exclude, calibration)
-    # what only the wall step needs goes before the second pass: a fresh process pays for every
-    # page it touches, and the rays alone are ~30 bytes a point (200 MB at 8 full-resolution
-    # cameras); each camera's steadied cloud goes as soon as it is reseated
+    # what only the wall step needs goes before the second pass (a fresh process pays for every
+    # page it touches), and each camera's steadied cloud as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
         cameras, dropped = (
             clear,
             sum(len(c.points) - len(k.points) for c, k in zip(scan.cameras, clear, strict=True)),
         )
-        del rays
+        del crossings
     else:
         del clear
-        grid = Grid.over(site.region, rough_settings.grid_step_m)
         first = rough.heightmap.heights.astype(np.float64)
-        cameras, dropped = wall_free(scan.cameras, rays, site.bin, grid, first)
-        del rays
+        cameras, dropped = wall_free(scan.cameras, crossings, site.bin, first)
+        del crossings
         surface = FirstSurface.of(grid, first)  # once: it is the same for every camera
         for index in range(len(cameras)):
             cameras[index] = reseated(cameras[index], surface, settings.depth_noise_factor)
@@ -291,6 +297,20 @@ def reconstruct(
     result.points["raw"] = sum(len(c.points) for c in scan.cameras)
     result.points["wall"] = dropped
     return result
+
+
+def _wall_crossings(
+    cameras: Sequence[CameraCloud], shape: BinShape, grid: Grid, noise_factor: float
+) -> tuple[list[WallCrossing], list[CameraCloud]]:
+    """Each camera's wall crossings on the first pass's `grid` and its points certainly clear
+    of the wall, a camera at a time: the full WallRays (29 bytes a point) never exist for all
+    cameras at once."""
+    crossings, clear = [], []
+    for cloud in cameras:
+        rays = wall_rays(cloud, shape, noise_factor)
+        crossings.append(WallCrossing.of(rays, shape, grid))
+        clear.append(with_points(cloud, rays.clear_of_wall))
+    return crossings, clear
 
 
 def _reconstruct(
