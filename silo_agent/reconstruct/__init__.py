@@ -34,7 +34,13 @@ from silo_agent.grid.volume import (
     integrate_counted,
     surface_levels,
 )
-from silo_agent.reconstruct.cells import EPS_MAX_M, CellTotals, clustered_means, voxel_downsample
+from silo_agent.reconstruct.cells import (
+    EPS_MAX_M,
+    CellTotals,
+    clustered_means,
+    height_segments,
+    voxel_downsample,
+)
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
@@ -361,12 +367,14 @@ def _reconstruct(
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
+    segments = height_segments(points, camera, cell, grid, totals)
+    counts = _PointCounts(raw_count, in_region, len(points))
+    del points, camera, cell
     cells = clustered_means(
-        points, camera, cell, grid, totals, settings.cluster_min_points, settings.max_clusters
+        segments, grid, totals, settings.cluster_min_points, settings.max_clusters
     )
     clock.lap("clustered_means")
-    counts = _PointCounts(raw_count, in_region, len(points))
-    del points, camera, cell, totals
+    del segments, totals
     observed = np.isfinite(cells.height) & (grid.inside > 0)
     observed = _trusted_cells(grid, observed, cells.points)
     band = _wall_band(grid, site, observed)

@@ -263,20 +263,31 @@ class CellTotals:
         return cls(per_cell, centroid_x, centroid_y, eps_m, moments.n_cams)
 
 
+def height_segments(
+    points: np.ndarray, camera: np.ndarray, cell: np.ndarray, grid: Grid, totals: CellTotals
+) -> _Segments | None:
+    """The sorted (cell, height bin, camera) runs of the points that `clustered_means`
+    clusters (None without points); `totals` are those of (points, camera, cell). All the
+    clustering reads of the points: they can go before it runs."""
+    if len(points) == 0 or totals.eps_m is None:
+        return None
+    rows, cols = grid.shape
+    return _segments(points, camera, cell, rows * cols, totals.n_cams, totals.eps_m)
+
+
 def clustered_means(
-    points: np.ndarray,
-    camera: np.ndarray,
-    cell: np.ndarray,
+    segments: _Segments | None,
     grid: Grid,
     totals: CellTotals,
     min_points: int | None,
     max_clusters: int,
 ) -> CellHeights:
-    """`totals` are those of (points, camera, cell): centroids and eps come from them."""
+    """`segments` and `totals` of one cloud (`height_segments`, `CellTotals.of`): heights from
+    the one, centroids and eps from the other."""
     rows, cols = grid.shape
     n_cells = rows * cols
     eps_m = totals.eps_m
-    if len(points) == 0 or eps_m is None:
+    if segments is None or eps_m is None:
         nan = np.full(grid.shape, np.nan)
         zeros = np.zeros(grid.shape, dtype=int)
         return CellHeights(nan, nan, nan, zeros, zeros, eps_m or 0.0, min_points, 0.0)
@@ -284,9 +295,7 @@ def clustered_means(
     per_cell = totals.points
     n_cams = totals.n_cams
     double_surface = max(DOUBLE_SURFACE_FACTOR * eps_m, DOUBLE_SURFACE_MIN_M)
-    found = _clusters(
-        _segments(points, camera, cell, n_cells, n_cams, eps_m), eps_m, double_surface, n_cams
-    )
+    found = _clusters(segments, eps_m, double_surface, n_cams)
     c_n, c_cell, c_z = found.count, found.cell, found.z
     n_clusters = len(c_n)
 

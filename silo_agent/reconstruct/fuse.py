@@ -31,6 +31,21 @@ def _mask_dtype(n_cams: int) -> type[np.unsignedinteger]:
     return np.uint64
 
 
+def _set_bits(mask: np.ndarray, group: np.ndarray, camera: np.ndarray, bits: np.ndarray) -> None:
+    """`mask[group] |= bits`, element by element (a group's elements may carry different bits).
+
+    Where the cameras come in runs (a fused cloud: camera by camera), one fancy-indexed OR per
+    run, which is right with repeated groups because every element of a run sets the same bit:
+    twice as fast as `np.bitwise_or.at` on the 12 m silo's 3.3 M points."""
+    if len(camera) and np.all(camera[1:] >= camera[:-1]):
+        bounds = np.searchsorted(camera, np.arange(int(camera[-1]) + 2))
+        for run in range(len(bounds) - 1):
+            if bounds[run] < bounds[run + 1]:
+                mask[group[bounds[run] : bounds[run + 1]]] |= bits[bounds[run]]
+    else:
+        np.bitwise_or.at(mask, group, bits)
+
+
 @dataclass(frozen=True)
 class CameraPairs:
     """The (group, camera) pairs that occur among elements each in a group (a cell, a
@@ -47,19 +62,32 @@ class CameraPairs:
         of the groups before plus the cameras set below its own bit. O(elements + groups)."""
         words = -(-n_cams // 64)
         dtype = _mask_dtype(min(n_cams, 64))
-        masks = np.zeros((words, n_groups), dtype=dtype)
         camera = camera.astype(np.uint8, copy=False)
-        word, bit = np.divmod(camera, 64)
-        np.bitwise_or.at(masks, (word, group), np.left_shift(1, bit, dtype=dtype))
-        per_group = np.bitwise_count(masks).sum(axis=0, dtype=np.int32)  # pairs <= points
-        first = np.cumsum(per_group, dtype=np.int32) - per_group  # a group's first pair
-        of_element = first[group]
-        del first
-        of_element += np.bitwise_count(
-            masks[word, group] & (np.left_shift(1, bit, dtype=dtype) - 1)
-        )
-        for lower in range(1, words):  # cameras of the words below, for cameras past 64
-            of_element += np.where(word >= lower, np.bitwise_count(masks[lower - 1, group]), 0)
+        if words == 1:  # up to 64 cameras: one word, indexed by the group alone (2x faster)
+            mask = np.zeros(n_groups, dtype=dtype)
+            bits = np.left_shift(1, camera, dtype=dtype)
+            _set_bits(mask, group, camera, bits)
+            per_group = np.bitwise_count(mask).astype(np.int32)
+            first = np.cumsum(per_group, dtype=np.int32) - per_group  # a group's first pair
+            of_element = first[group]
+            del first
+            bits -= 1  # the cameras below each element's own
+            bits &= mask[group]
+            of_element += np.bitwise_count(bits)
+            del bits
+        else:
+            masks = np.zeros((words, n_groups), dtype=dtype)
+            word, bit = np.divmod(camera, 64)
+            np.bitwise_or.at(masks, (word, group), np.left_shift(1, bit, dtype=dtype))
+            per_group = np.bitwise_count(masks).sum(axis=0, dtype=np.int32)  # pairs <= points
+            first = np.cumsum(per_group, dtype=np.int32) - per_group
+            of_element = first[group]
+            del first
+            of_element += np.bitwise_count(
+                masks[word, group] & (np.left_shift(1, bit, dtype=dtype) - 1)
+            )
+            for lower in range(1, words):  # cameras of the words below, for cameras past 64
+                of_element += np.where(word >= lower, np.bitwise_count(masks[lower - 1, group]), 0)
         n_pairs = int(per_group.sum(dtype=np.int64))
         pair_group = np.empty(n_pairs, group.dtype)
         pair_group[of_element] = group
@@ -98,19 +126,16 @@ class CellMoments:
         """One pass over all points: each pair's sums add its points in their order, as a
         bincount per camera would."""
         pairs = CameraPairs.of(cell, camera, n_cells, n_cams)
-        index, n = pairs.of_element, len(pairs.group)
+        n = len(pairs.group)
+        index = pairs.of_element.astype(np.intp)  # what bincount reads: cast once, not 5 times
+        count = np.bincount(index, None, n)
+        sum_x = np.bincount(index, points[:, 0], n)
+        sum_y = np.bincount(index, points[:, 1], n)
         z = points[:, 2].astype(np.float64)
-        return cls(
-            pairs.group,
-            pairs.camera,
-            np.bincount(index, None, n),
-            np.bincount(index, points[:, 0], n),
-            np.bincount(index, points[:, 1], n),
-            np.bincount(index, z, n),
-            np.bincount(index, z * z, n),
-            n_cells,
-            n_cams,
-        )
+        sum_z = np.bincount(index, z, n)
+        z *= z  # squared in place: one float64 column less at the peak
+        sum_zz = np.bincount(index, z, n)
+        return cls(pairs.group, pairs.camera, count, sum_x, sum_y, sum_z, sum_zz, n_cells, n_cams)
 
     def per_cell(self, values: np.ndarray) -> np.ndarray:
         """`values` of the pairs summed over each cell's cameras, dense over all cells (0 where
