@@ -58,23 +58,45 @@ def smoothed_depth(
     if not k or not all(key in k for key in ("width", "height", "fx", "fy", "ppx", "ppy")):
         return None
     width, height = int(k["width"]), int(k["height"])
-    z = cloud.points[:, 2].astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.rint(cloud.points[:, 0] / z * k["fx"] + k["ppx"])
-        v = np.rint(cloud.points[:, 1] / z * k["fy"] + k["ppy"])
-    on_image = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    points = cloud.points
+    z = points[:, 2].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):  # in place: x / z * fx + ppx, rounded
+        u = points[:, 0].astype(np.float64)
+        u /= z
+        u *= k["fx"]
+        u += k["ppx"]
+        np.rint(u, out=u)
+        v = points[:, 1].astype(np.float64)
+        v /= z
+        v *= k["fy"]
+        v += k["ppy"]
+        np.rint(v, out=v)
+    on_image = z > 0
+    on_image &= u >= 0
+    on_image &= u < width
+    on_image &= v >= 0
+    on_image &= v < height
     if among is not None:
         on_image &= among
-    u = np.where(on_image, u, 0).astype(np.int64)
-    v = np.where(on_image, v, 0).astype(np.int64)
-    image = np.zeros((2, height, width))
-    image[0, v[on_image], u[on_image]] = 1.0 / z[on_image]
-    image[1, v[on_image], u[on_image]] = 1.0
+    on = np.flatnonzero(on_image)
+    del on_image
+    v = v[on]
+    v *= width
+    v += u[on]
+    pixel = v.astype(np.intp)  # a flat index: written and read as one, not as (v, u) pairs
+    del u, v
+    image = np.zeros((2, height * width))
+    inverse, seen = image  # views
+    inverse[pixel] = 1.0 / z[on]
+    seen[pixel] = 1.0
+    del inverse, seen
     size = max(3, 2 * round(window_at_848 * width / 848 / 2) + 1)
+    image = image.reshape(2, height, width)
     total, count = ndimage.uniform_filter(image, size=(1, size, size), mode="constant")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean = count / total
-    return np.where(on_image, mean[v, u], z)
+    del image
+    # the mean disparity's inverse at the points' pixels only, not over the whole image
+    z[on] = count.ravel()[pixel] / total.ravel()[pixel]
+    return z
 
 
 def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallRays:
