@@ -280,7 +280,9 @@ def reconstruct(
     )
     grid = Grid.over(site.region, rough_settings.grid_step_m)
     crossings, clear = _wall_crossings(scan.cameras, site.bin, grid, settings.depth_noise_factor)
-    rough = _reconstruct(replace(scan, cameras=clear), rough_settings, site, exclude, calibration)
+    rough = _reconstruct(
+        replace(scan, cameras=clear), rough_settings, site, exclude, calibration, residuals=False
+    )
     # what only the wall step needs goes before the second pass (a fresh process pays for every
     # page it touches), and each camera's steadied cloud as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
@@ -325,8 +327,10 @@ def _reconstruct(
     site: Site,
     exclude: Sequence[tuple[float, float, float]],
     calibration: CalibrationConfig | None,
+    residuals: bool = True,
 ) -> Reconstruction:
-    """`reconstruct` on clouds that hold no wall."""
+    """`reconstruct` on clouds that hold no wall; without the cameras' registration residuals
+    if not `residuals` (a bin's first pass: only its heights are read)."""
     clock = _Clock()
     grid = Grid.over(site.region, settings.grid_step_m)
     fused = fuse_and_crop(scan.cameras, site, grid)
@@ -334,14 +338,16 @@ def _reconstruct(
         fused = _excluding(fused, exclude)
     clock.lap("fuse_crop")
     calibration = calibration or CalibrationConfig()
-    registration = registration_residuals(
-        fused,
-        grid,
-        [c.serial for c in scan.cameras],
-        calibration.residual_min_points,
-        calibration.residual_min_cells,
-    )
-    clock.lap("registration_residual")
+    registration: dict[str, PairResidual] = {}
+    if residuals:
+        registration = registration_residuals(
+            fused,
+            grid,
+            [c.serial for c in scan.cameras],
+            calibration.residual_min_points,
+            calibration.residual_min_cells,
+        )
+        clock.lap("registration_residual")
     if settings.method != "bicm":
         from silo_agent.reconstruct.baselines import baseline_heights
 

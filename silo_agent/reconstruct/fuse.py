@@ -126,8 +126,9 @@ class CellMoments:
         """One pass over all points: each pair's sums add its points in their order, as a
         bincount per camera would."""
         pairs = CameraPairs.of(cell, camera, n_cells, n_cams)
-        n = len(pairs.group)
+        n, group, pair_camera = len(pairs.group), pairs.group, pairs.camera
         index = pairs.of_element.astype(np.intp)  # what bincount reads: cast once, not 5 times
+        del pairs
         count = np.bincount(index, None, n)
         sum_x = np.bincount(index, points[:, 0], n)
         sum_y = np.bincount(index, points[:, 1], n)
@@ -135,7 +136,7 @@ class CellMoments:
         sum_z = np.bincount(index, z, n)
         z *= z  # squared in place: one float64 column less at the peak
         sum_zz = np.bincount(index, z, n)
-        return cls(pairs.group, pairs.camera, count, sum_x, sum_y, sum_z, sum_zz, n_cells, n_cams)
+        return cls(group, pair_camera, count, sum_x, sum_y, sum_z, sum_zz, n_cells, n_cams)
 
     def per_cell(self, values: np.ndarray) -> np.ndarray:
         """`values` of the pairs summed over each cell's cameras, dense over all cells (0 where

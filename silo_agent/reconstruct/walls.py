@@ -91,9 +91,10 @@ def smoothed_depth(
     seen[pixel] = 1.0
     del inverse, seen
     size = max(3, 2 * round(window_at_848 * width / 848 / 2) + 1)
-    image = image.reshape(2, height, width)
-    total, count = ndimage.uniform_filter(image, size=(1, size, size), mode="constant")
+    planes = image.reshape(2, height, width)
     del image
+    total, count = ndimage.uniform_filter(planes, size=(1, size, size), mode="constant")
+    del planes
     # the mean disparity's inverse at the points' pixels only, not over the whole image
     z[on] = count.ravel()[pixel] / total.ravel()[pixel]
     return z
