@@ -219,11 +219,13 @@ def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: 
     pairs = CameraPairs.of(m_cluster, segments.camera[member], n_clusters, n_cams)
     del m_cluster
     size = len(pairs.group)
-    pair_mean = np.bincount(pairs.of_element, segments.z_sum[member], size) / np.bincount(
-        pairs.of_element, m_n, size
-    )
-    c_z = segments.z0 + np.bincount(pairs.group, pair_mean, n_clusters) / np.bincount(
-        pairs.group, minlength=n_clusters
+    # bincount reads intp: cast once each (and drop what is read) rather than once a call
+    element, pair_cluster = pairs.of_element.astype(np.intp), pairs.group.astype(np.intp)
+    del pairs
+    pair_mean = np.bincount(element, segments.z_sum[member], size) / np.bincount(element, m_n, size)
+    del element, member, m_n
+    c_z = segments.z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
+        pair_cluster, minlength=n_clusters
     )
     return _Clusters(c_n, c_cell, c_z)
 

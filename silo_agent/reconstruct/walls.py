@@ -146,7 +146,9 @@ def steadied(cloud: CameraCloud) -> CameraCloud:
     z = cloud.points[:, 2].astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(z > 0, depth / z, 1.0)
-    return replace(cloud, points=(cloud.points * scale[:, None]).astype(np.float32))
+    # computed in float64 and rounded to float32 on the way out, as a float64 product cast after
+    points = np.multiply(cloud.points, scale[:, None], out=np.empty_like(cloud.points))
+    return replace(cloud, points=points)
 
 
 def grain_at_wall(
