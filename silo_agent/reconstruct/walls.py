@@ -24,7 +24,7 @@ from silo_agent.base.d455 import depth_rms_m
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.smooth import masked_smooth
-from silo_agent.scan import CameraCloud
+from silo_agent.scan import CameraCloud, rows_where
 
 SMOOTHING_PX_AT_848 = 9  # box window over the depth image, scaled with the image width
 SMOOTHED_NOISE_SHARE = 0.5  # D455 noise is spatially correlated: a 9 px box keeps about half
@@ -126,10 +126,9 @@ def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallR
 
 
 def with_points(cloud: CameraCloud, keep: np.ndarray) -> CameraCloud:
-    """`cloud` with only the points in `keep` (colours alike). `np.compress`, not a boolean
-    index: 4x faster on (N, 3) rows (3.9 against 15.5 ms on a 1280x720 cloud)."""
-    colors = np.compress(keep, cloud.colors, axis=0) if cloud.colors is not None else None
-    return replace(cloud, points=np.compress(keep, cloud.points, axis=0), colors=colors)
+    """`cloud` with only the points in `keep` (colours alike)."""
+    colors = rows_where(cloud.colors, keep) if cloud.colors is not None else None
+    return replace(cloud, points=rows_where(cloud.points, keep), colors=colors)
 
 
 def steadied(cloud: CameraCloud) -> CameraCloud:
