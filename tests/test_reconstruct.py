@@ -354,7 +354,8 @@ def test_slope_correction_reaches_the_whole_of_a_round_region() -> None:
 
 
 def test_both_sorts_of_the_cell_key_give_the_same_cells(cone_scan_4: Scan, monkeypatch) -> None:
-    """numpy's SIMD sort (where the CPU has one) or the radix sort: same heights and clusters."""
+    """numpy's SIMD quicksort (where the CPU has a fast one) or its stable sort: same heights
+    and clusters."""
     from silo_agent.reconstruct import cells
 
     settings = ReconstructionConfig(grid_step_m=0.02)
@@ -362,10 +363,10 @@ def test_both_sorts_of_the_cell_key_give_the_same_cells(cone_scan_4: Scan, monke
     for simd in (True, False):
         monkeypatch.setattr(cells, "SIMD_SORT", simd)
         results.append(reconstruct(cone_scan_4, settings))
-    fast, radix = results
-    assert fast.volume_m3 == radix.volume_m3
-    assert np.array_equal(fast.heightmap.heights, radix.heightmap.heights, equal_nan=True)
-    assert np.array_equal(fast.heightmap.observed, radix.heightmap.observed)
+    fast, stable = results
+    assert fast.volume_m3 == stable.volume_m3
+    assert np.array_equal(fast.heightmap.heights, stable.heightmap.heights, equal_nan=True)
+    assert np.array_equal(fast.heightmap.observed, stable.heightmap.observed)
 
 
 @pytest.mark.parametrize("count", [1, 2, 3, 10, 11, 1000, 1001])
