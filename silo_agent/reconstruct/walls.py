@@ -260,16 +260,22 @@ def reseated(cloud: CameraCloud, first: FirstSurface, noise_factor: float) -> Ca
     level = ndimage.map_coordinates(first.level, at, order=1, mode="nearest")
     slope_x = ndimage.map_coordinates(first.slope_x, at, order=1, mode="nearest")
     slope_y = ndimage.map_coordinates(first.slope_y, at, order=1, mode="nearest")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ray = (silo - origin) / depth[:, None]  # silo-frame ray per unit of camera depth
-        rise = slope_x * ray[:, 0] + slope_y * ray[:, 1]  # surface rise per unit depth
+    with np.errstate(divide="ignore", invalid="ignore"):  # in place, each value as written
+        ray = silo - origin
+        ray /= depth[:, None]  # silo-frame ray per unit of camera depth
+        rise = slope_x * ray[:, 0]
+        rise += slope_y * ray[:, 1]  # surface rise per unit depth
         fall = rise - ray[:, 2]  # how fast the ray closes on the surface
-        shift = (silo[:, 2] - level) / fall  # along the ray to the first surface
+        shift = silo[:, 2] - level
+        shift /= fall  # along the ray to the first surface
     focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
     bound = RESEAT_MAX_SIGMAS * depth_rms_m(depth, focal, noise_factor)
     usable = np.isfinite(shift) & (fall > RESEAT_MIN_FALL) & (depth > 0)
     shift = np.where(usable, np.clip(shift, -bound, bound), 0.0)
-    moved = silo + ray * shift[:, None]
+    moved = ray
+    moved *= shift[:, None]
+    moved += silo
     moved[:, 2] = silo[:, 2] + shift * rise
-    points = (moved - origin) @ rotation  # back to the camera frame: R^T (p - o), row-wise
+    moved -= origin
+    points = moved @ rotation  # back to the camera frame: R^T (p - o), row-wise
     return replace(cloud, points=points.astype(np.float32))
