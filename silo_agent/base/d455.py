@@ -10,9 +10,16 @@ SUBPIXEL_PX = 0.08  # disparity RMS of block matching on an ideal target
 # share of the noise variance common to pixels a few apart (the blobs a block matcher makes):
 # averaging more points of one frame does not take it down
 CORRELATED_SHARE = 0.5
+CORRELATION_PX = 4.0  # ... in blobs of about this Gaussian sigma, in pixels
 
 
 def depth_rms_m(depth_m: np.ndarray | float, focal_px: float, factor: float = 1.0) -> np.ndarray:
     """The depth RMS at a depth, `factor` times the ideal target's: stereo matching errs in
     disparity, so it grows with depth squared (z^2 x subpixel / (f x baseline))."""
     return factor * np.square(depth_m) * SUBPIXEL_PX / (focal_px * BASELINE_M)
+
+
+def blob_area_px() -> float:
+    """The correlated part's integral scale in pixels: a mean over A pixels keeps a share
+    blob_area / A of its variance (4 pi sigma^2 for Gaussian-smoothed white noise)."""
+    return 4 * np.pi * CORRELATION_PX**2

@@ -199,11 +199,108 @@ def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:
     )
 
 
-LEVEL_SCALE_M = 0.4  # where a bin's highest and lowest grain are looked for ...
+LEVEL_SCALE_M = 0.4  # without a noise model: where a bin's highest and lowest grain are looked for
 LEVEL_FIT_RADIUS_M = 1.0  # ... and the radius of the cone fitted there
 LEVEL_WALL_BAND_M = 0.3  # ... but not this close to a bin's wall
 LEVEL_CONE_MIN_SLOPE = 0.15  # a fitted slope under this (8.5 deg) is a flat surface's noise
 GRAIN_MIN_DEPTH_M = 0.10  # grain, for a bin's levels: this deep, smoothed at LEVEL_SCALE_M
+LEVEL_SIGMA_M = 0.015  # a level is read where the surface is known to this (1 sigma) ...
+LEVEL_SCALES_M = (0.15, 0.3, 0.6, 1.2, 2.4)  # ... averaged over the widest of these that
+LEVEL_AGREE_SIGMAS = 3.0  # agrees with every finer one within this many of its sigmas
+LEVEL_CONE_SIGMAS = 3.0  # a fitted cone's slope must stand this many sigmas clear of flat
+LEVEL_CONE_MIN_SHARE = 0.7  # ... on a disc of which this share holds measured grain
+LEVEL_CONE_MAX_TILT = 0.5  # ... and fall all round: a one-sided tilt under half the slope
+LEVEL_MIN_KNOWN_SHARE = 0.5  # read so if this share of the grain is known to LEVEL_SIGMA_M
+
+
+def _kernel_share(sigma_cells: float) -> float:
+    """Sum of the squared weights of `masked_smooth`'s kernel (two box passes) at this sigma,
+    in 2-D: a mean over it of independent cells keeps this share of their variance."""
+    size = max(3, 2 * round(sigma_cells * np.sqrt(6) / 2) + 1)
+    line = np.convolve(np.ones(size), np.ones(size)) / size**2
+    return float(np.sum(line**2)) ** 2
+
+
+def level_surface(
+    grid: Grid, heights: np.ndarray, measured: np.ndarray, information: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The measured surface averaged, per cell, over the widest of LEVEL_SCALES_M that still
+    agrees with every finer one (Lepski's rule: each finer mean, within LEVEL_AGREE_SIGMAS of
+    its own noise), and that mean's sigma (inf where not measured).
+
+    `information` (reconstruct/trust.py) weighs the cells: a camera's points count by the
+    inverse of their noise, so a cell seen from 5 m and from 10 m reads mostly the near one.
+    Filled cells count nothing: a level is read on what the cameras measured. A wider mean
+    has less noise but rounds a heap's apex or a crater's bottom off; the rule stops widening
+    where that rounding starts to show over the noise. On flat grain across a 10 m bin it
+    reaches 1.2-2.4 m; on a heap's flank under 5 m of range it stays at 0.15-0.3 m. Third,
+    the cells known to LEVEL_SIGMA_M at some scale: where a level may be read at all."""
+    region = grid.inside > 0
+    weight = np.where(measured & np.isfinite(heights), information, 0.0)
+    weighted = np.where(weight > 0, weight * np.nan_to_num(heights), 0.0)
+    means: list[np.ndarray] = []
+    sigmas: list[np.ndarray] = []
+    surface = np.full(grid.shape, np.nan)
+    sigma = np.full(grid.shape, np.inf)
+    agrees = measured.copy()
+    known = np.zeros(grid.shape, dtype=bool)
+    for scale_m in LEVEL_SCALES_M:
+        cells = max(scale_m / grid.step, 1.0)
+        mean_weight = masked_smooth(weight, region, cells)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = masked_smooth(weighted, region, cells) / mean_weight
+            spread = np.sqrt(_kernel_share(cells) / (grid.cell_area * mean_weight))
+        mean = np.where(measured, mean, np.nan)
+        spread = np.where(np.isfinite(mean) & (mean_weight > 0), spread, np.inf)
+        for finer, finer_sigma in zip(means, sigmas, strict=True):
+            with np.errstate(invalid="ignore"):
+                agrees &= np.abs(mean - finer) <= LEVEL_AGREE_SIGMAS * finer_sigma
+        agrees &= np.isfinite(mean)
+        surface = np.where(agrees, mean, surface)
+        sigma = np.where(agrees, spread, sigma)
+        known |= measured & (spread <= LEVEL_SIGMA_M)
+        means.append(mean)
+        sigmas.append(spread)
+    return surface, sigma, known
+
+
+def _cone_or_mean(
+    grid: Grid,
+    heights: np.ndarray,
+    cells: np.ndarray,
+    information: np.ndarray,
+    at: tuple[int, int],
+    mean: float,
+    rises: bool,
+) -> float:
+    """The height at cell `at` of a cone h = a + b * distance fitted to the `cells` within
+    LEVEL_FIT_RADIUS_M (weighted by their information), if it is one: its slope rises away
+    from `at` (a crater's bottom, `rises`) or falls (a heap's apex) by more than
+    LEVEL_CONE_SIGMAS of its own noise and LEVEL_CONE_MIN_SLOPE, on a disc mostly measured
+    (not cut by the wall band or the edge of what was seen), and its tip lies beyond `mean`,
+    the surface averaged there (averaging rounds a tip off, never sharpens it); else `mean`."""
+    xs, ys = grid.centres()
+    distance = np.hypot(xs - xs[at], ys - ys[at])
+    disc = (grid.inside > 0) & (distance <= LEVEL_FIT_RADIUS_M)
+    near = cells & disc & (information > 0)
+    if near.sum() < max(3, LEVEL_CONE_MIN_SHARE * disc.sum()):
+        return mean
+    weight = information[near] * grid.cell_area  # inverse variance of each cell
+    bearing = np.arctan2(ys - ys[at], xs - xs[at])[near]
+    d = distance[near]
+    design = np.column_stack([np.ones(len(d)), d, d * np.cos(bearing), d * np.sin(bearing)])
+    normal = design.T @ (design * weight[:, None])
+    try:
+        covariance = np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        return mean
+    tip, slope, tilt_x, tilt_y = covariance @ (design.T @ (weight * heights[near]))
+    clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
+    # a cone falls (or rises) alike all round: a rim or a slope falls on one side only
+    round_ = np.hypot(tilt_x, tilt_y) < LEVEL_CONE_MAX_TILT * abs(slope)
+    cone = (slope > clear if rises else slope < -clear) and round_
+    beyond = tip <= mean if rises else tip >= mean
+    return float(tip) if cone and beyond else mean
 
 
 def _fitted_peak(
@@ -229,6 +326,7 @@ def grain_levels(
     counted: np.ndarray,
     observed: np.ndarray,
     off_wall: np.ndarray,
+    information: np.ndarray | None = None,
 ) -> Levels:
     """A bin's min, mean and max grain level, over the cells where grain stands (bare floor or
     hopper steel is not grain).
@@ -249,14 +347,44 @@ def grain_levels(
     measured = grain & observed & off_wall
     if not np.any(measured):
         measured = grain
+    weights = grid.inside[grain]
+    mean = float(np.sum(heights[grain] * weights) / np.sum(weights))
+    if information is not None:
+        levels = _trusted_levels(grid, heights, measured, information, mean)
+        if levels is not None:
+            return levels
     smooth = masked_smooth(heights, region, scale)
     ranked = np.where(measured & np.isfinite(smooth), smooth, np.nan)
     top = np.unravel_index(int(np.nanargmax(ranked)), ranked.shape)
     low = np.unravel_index(int(np.nanargmin(ranked)), ranked.shape)
-    weights = grid.inside[grain]
-    mean = float(np.sum(heights[grain] * weights) / np.sum(weights))
     return Levels(
         _fitted_peak(grid, heights, measured, (int(low[0]), int(low[1])), LEVEL_FIT_RADIUS_M),
         mean,
         _fitted_peak(grid, heights, measured, (int(top[0]), int(top[1])), LEVEL_FIT_RADIUS_M),
+    )
+
+
+def _trusted_levels(
+    grid: Grid, heights: np.ndarray, measured: np.ndarray, information: np.ndarray, mean: float
+) -> Levels | None:
+    """`grain_levels` with a noise model: the extremes of `level_surface` over the cells where
+    it is known to LEVEL_SIGMA_M, each read as a cone if one is there (`_cone_or_mean`);
+    None if less than LEVEL_MIN_KNOWN_SHARE of the measured grain is known that well."""
+    surface, _sigma, known = level_surface(grid, heights, measured, information)
+    trusted = known & np.isfinite(surface)
+    if trusted.sum() < LEVEL_MIN_KNOWN_SHARE * measured.sum():
+        return None  # a sparse view (one camera, a small image): the cameras pin down little
+    # located on one smoothing for all cells (an adaptive one would rank a crater's bottom,
+    # averaged wider, above its flanks), read on the adaptive one
+    located = masked_smooth(heights, measured, max(LEVEL_SCALE_M / grid.step, 1.0))
+    ranked = np.where(trusted & np.isfinite(located), located, np.nan)
+    if not np.any(np.isfinite(ranked)):
+        return None
+    top = np.unravel_index(int(np.nanargmax(ranked)), ranked.shape)
+    low = np.unravel_index(int(np.nanargmin(ranked)), ranked.shape)
+    top_at, low_at = (int(top[0]), int(top[1])), (int(low[0]), int(low[1]))
+    return Levels(
+        _cone_or_mean(grid, heights, measured, information, low_at, float(surface[low]), True),
+        mean,
+        _cone_or_mean(grid, heights, measured, information, top_at, float(surface[top]), False),
     )

@@ -45,6 +45,7 @@ from silo_agent.reconstruct.cells import (
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
+from silo_agent.reconstruct.trust import cell_information
 from silo_agent.reconstruct.walls import (
     FirstSurface,
     WallCrossing,
@@ -390,6 +391,9 @@ def _reconstruct(
         clock.lap("voxel_downsample")
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
+    information = None  # how well each cell is known, for a bin's levels: from the moments
+    if site.bin is not None:
+        information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
     del moments
     segments = height_segments(points, camera, cell, grid, totals)
     counts = _PointCounts(raw_count, in_region, len(points))
@@ -468,6 +472,7 @@ def _reconstruct(
         base=base_plane(grid, heights, site.base, site.floor_z),
         seen=observed | seen if site.bin is not None else None,
         bin_cells=bin_cells,
+        information=information,
     )
     result.points["after_downsampling"] = counts.after_downsampling
     result.registration = registration
@@ -498,9 +503,12 @@ def _result(
     base: tuple[float, float, float] | None = None,
     seen: np.ndarray | None = None,
     bin_cells: _BinCells | None = None,
+    information: np.ndarray | None = None,
 ) -> Reconstruction:
     """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map;
-    `seen` (default `observed`): the cells the cameras covered, for the coverage."""
+    `seen` (default `observed`): the cells the cameras covered, for the coverage;
+    `information` (reconstruct/trust.py): how well each measured cell is known, for a bin's
+    levels."""
     if bin_cells is None and site.bin is not None:
         bin_cells = _BinCells(grid, site.bin)
     region_area = float(np.sum(grid.inside))
@@ -528,7 +536,7 @@ def _result(
         if np.any(np.isfinite(heights)):
             if bin_cells is not None and counted is not None:
                 off_wall = bin_cells.wall_distance > LEVEL_WALL_BAND_M
-                surface = grain_levels(grid, heights, counted, observed, off_wall)
+                surface = grain_levels(grid, heights, counted, observed, off_wall, information)
             else:
                 surface = surface_levels(grid, heights)
     density = site.bulk_density_t_m3

@@ -19,7 +19,7 @@ from scipy import ndimage
 from scipy.ndimage import gaussian_filter
 from scipy.special import ndtri
 
-from silo_agent.base.d455 import BASELINE_M, CORRELATED_SHARE, SUBPIXEL_PX
+from silo_agent.base.d455 import BASELINE_M, CORRELATED_SHARE, CORRELATION_PX, SUBPIXEL_PX
 from silo_agent.sim.mesh import CLUTTER, GRAIN
 from silo_agent.sim.raycast import Hits, Raycaster
 
@@ -58,7 +58,7 @@ class NoiseModel:
     subpixel: float = SUBPIXEL_PX
     baseline_m: float = BASELINE_M
     correlated_share: float = CORRELATED_SHARE
-    correlation_px: float = 4.0  # Gaussian sigma of the correlated part
+    correlation_px: float = CORRELATION_PX  # Gaussian sigma of the correlated part
     depth_unit_m: float = 0.001  # D455 default depth unit
     min_depth_m: float = 0.4
     max_depth_m: float = 6.0
