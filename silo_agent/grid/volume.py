@@ -210,6 +210,7 @@ LEVEL_AGREE_SIGMAS = 3.0  # agrees with every finer one within this many of its 
 LEVEL_CONE_SIGMAS = 3.0  # a fitted cone's slope must stand this many sigmas clear of flat
 LEVEL_CONE_MIN_SHARE = 0.7  # ... on a disc of which this share holds measured grain
 LEVEL_CONE_MAX_TILT = 0.5  # ... and fall all round: a one-sided tilt under half the slope
+LEVEL_WALL_FIT_RADIUS_M = 1.5  # a cone with its tip on the wall is fitted this far round it
 LEVEL_MIN_KNOWN_SHARE = 0.5  # read so if this share of the grain is known to LEVEL_SIGMA_M
 
 
@@ -327,6 +328,7 @@ def grain_levels(
     observed: np.ndarray,
     off_wall: np.ndarray,
     information: np.ndarray | None = None,
+    wall_distance: np.ndarray | None = None,
 ) -> Levels:
     """A bin's min, mean and max grain level, over the cells where grain stands (bare floor or
     hopper steel is not grain).
@@ -350,7 +352,7 @@ def grain_levels(
     weights = grid.inside[grain]
     mean = float(np.sum(heights[grain] * weights) / np.sum(weights))
     if information is not None:
-        levels = _trusted_levels(grid, heights, measured, information, mean)
+        levels = _trusted_levels(grid, heights, measured, information, mean, wall_distance)
         if levels is not None:
             return levels
     smooth = masked_smooth(heights, region, scale)
@@ -365,10 +367,16 @@ def grain_levels(
 
 
 def _trusted_levels(
-    grid: Grid, heights: np.ndarray, measured: np.ndarray, information: np.ndarray, mean: float
+    grid: Grid,
+    heights: np.ndarray,
+    measured: np.ndarray,
+    information: np.ndarray,
+    mean: float,
+    wall_distance: np.ndarray | None,
 ) -> Levels | None:
     """`grain_levels` with a noise model: the extremes of `level_surface` over the cells where
-    it is known to LEVEL_SIGMA_M, each read as a cone if one is there (`_cone_or_mean`);
+    it is known to LEVEL_SIGMA_M, each read as a cone if one is there (`_cone_or_mean`) or
+    carried on to the wall if it lies by the wall band on a slope down to it (`_to_wall`);
     None if less than LEVEL_MIN_KNOWN_SHARE of the measured grain is known that well."""
     surface, _sigma, known = level_surface(grid, heights, measured, information)
     trusted = known & np.isfinite(surface)
@@ -383,8 +391,60 @@ def _trusted_levels(
     top = np.unravel_index(int(np.nanargmax(ranked)), ranked.shape)
     low = np.unravel_index(int(np.nanargmin(ranked)), ranked.shape)
     top_at, low_at = (int(top[0]), int(top[1])), (int(low[0]), int(low[1]))
-    return Levels(
-        _cone_or_mean(grid, heights, measured, information, low_at, float(surface[low]), True),
-        mean,
-        _cone_or_mean(grid, heights, measured, information, top_at, float(surface[top]), False),
+    lowest = _cone_or_mean(grid, heights, measured, information, low_at, float(surface[low]), True)
+    highest = _cone_or_mean(
+        grid, heights, measured, information, top_at, float(surface[top]), False
     )
+    if wall_distance is not None:
+        lowest = _to_wall(grid, heights, measured, information, low_at, lowest, True, wall_distance)
+        highest = _to_wall(
+            grid, heights, measured, information, top_at, highest, False, wall_distance
+        )
+    return Levels(lowest, mean, highest)
+
+
+def _to_wall(
+    grid: Grid,
+    heights: np.ndarray,
+    cells: np.ndarray,
+    information: np.ndarray,
+    at: tuple[int, int],
+    value: float,
+    rises: bool,
+    wall_distance: np.ndarray,
+) -> float:
+    """An extreme found by the wall band may lie at the wall itself: a side-draw's cone is
+    drawn down to its outlet in the wall, grain blown against the wall stands highest there.
+    The band's own cells are not read (from 8-10 m the far wall's grain reads 3-5 cm low
+    there), so a cone h = a + b * distance is fitted (weighted by information) to the `cells`
+    within LEVEL_WALL_FIT_RADIUS_M of the wall point nearest `at`, its tip on the wall (the
+    lever from 0.3 m out needs the wider disc); if it rises
+    away from the wall (a lowest point, `rises`) or falls (a highest) by LEVEL_CONE_SIGMAS of
+    its own noise and LEVEL_CONE_MIN_SLOPE, its tip is the level, if beyond `value`."""
+    reach = float(wall_distance[at])
+    if not np.isfinite(reach) or reach > LEVEL_WALL_BAND_M + 2 * grid.step:
+        return value
+    inward_y, inward_x = (g[at] for g in np.gradient(wall_distance, grid.step))
+    norm = float(np.hypot(inward_x, inward_y))
+    if not norm > 0:
+        return value
+    xs, ys = grid.centres()
+    foot_x = xs[at] - inward_x / norm * reach
+    foot_y = ys[at] - inward_y / norm * reach
+    distance = np.hypot(xs - foot_x, ys - foot_y)
+    near = cells & (distance <= LEVEL_WALL_FIT_RADIUS_M) & (information > 0)
+    if near.sum() < 3:
+        return value
+    weight = information[near] * grid.cell_area
+    design = np.column_stack([np.ones(int(near.sum())), distance[near]])
+    try:
+        covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
+    except np.linalg.LinAlgError:
+        return value
+    tip, slope = covariance @ (design.T @ (weight * heights[near]))
+    clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
+    if rises and slope > clear:
+        return min(value, float(tip))
+    if not rises and slope < -clear:
+        return max(value, float(tip))
+    return value

@@ -535,8 +535,10 @@ def _result(
         )
         if np.any(np.isfinite(heights)):
             if bin_cells is not None and counted is not None:
-                off_wall = bin_cells.wall_distance > LEVEL_WALL_BAND_M
-                surface = grain_levels(grid, heights, counted, observed, off_wall, information)
+                wall = bin_cells.wall_distance
+                surface = grain_levels(
+                    grid, heights, counted, observed, wall > LEVEL_WALL_BAND_M, information, wall
+                )
             else:
                 surface = surface_levels(grid, heights)
     density = site.bulk_density_t_m3
