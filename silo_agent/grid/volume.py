@@ -210,7 +210,7 @@ LEVEL_AGREE_SIGMAS = 3.0  # agrees with every finer one within this many of its 
 LEVEL_CONE_SIGMAS = 3.0  # a fitted cone's slope must stand this many sigmas clear of flat
 LEVEL_CONE_MIN_SHARE = 0.7  # ... on a disc of which this share holds measured grain
 LEVEL_CONE_MAX_TILT = 0.5  # ... and fall all round: a one-sided tilt under half the slope
-LEVEL_WALL_FIT_RADIUS_M = 1.5  # a cone with its tip on the wall is fitted this far round it
+LEVEL_CONE_RADIUS_M = 1.5  # with a noise model, a cone's tip is fitted this far round it
 LEVEL_MIN_KNOWN_SHARE = 0.5  # read so if this share of the grain is known to LEVEL_SIGMA_M
 
 
@@ -275,14 +275,14 @@ def _cone_or_mean(
     rises: bool,
 ) -> float:
     """The height at cell `at` of a cone h = a + b * distance fitted to the `cells` within
-    LEVEL_FIT_RADIUS_M (weighted by their information), if it is one: its slope rises away
+    LEVEL_CONE_RADIUS_M (weighted by their information), if it is one: its slope rises away
     from `at` (a crater's bottom, `rises`) or falls (a heap's apex) by more than
     LEVEL_CONE_SIGMAS of its own noise and LEVEL_CONE_MIN_SLOPE, on a disc mostly measured
     (not cut by the wall band or the edge of what was seen), and its tip lies beyond `mean`,
     the surface averaged there (averaging rounds a tip off, never sharpens it); else `mean`."""
     xs, ys = grid.centres()
     distance = np.hypot(xs - xs[at], ys - ys[at])
-    disc = (grid.inside > 0) & (distance <= LEVEL_FIT_RADIUS_M)
+    disc = (grid.inside > 0) & (distance <= LEVEL_CONE_RADIUS_M)
     near = cells & disc & (information > 0)
     if near.sum() < max(3, LEVEL_CONE_MIN_SHARE * disc.sum()):
         return mean
@@ -417,8 +417,8 @@ def _to_wall(
     drawn down to its outlet in the wall, grain blown against the wall stands highest there.
     The band's own cells are not read (from 8-10 m the far wall's grain reads 3-5 cm low
     there), so a cone h = a + b * distance is fitted (weighted by information) to the `cells`
-    within LEVEL_WALL_FIT_RADIUS_M of the wall point nearest `at`, its tip on the wall (the
-    lever from 0.3 m out needs the wider disc); if it rises
+    within LEVEL_CONE_RADIUS_M of the wall point nearest `at`, its tip on the wall (the
+    lever from 0.3 m out needs a wide disc); if it rises
     away from the wall (a lowest point, `rises`) or falls (a highest) by LEVEL_CONE_SIGMAS of
     its own noise and LEVEL_CONE_MIN_SLOPE, its tip is the level, if beyond `value`."""
     reach = float(wall_distance[at])
@@ -432,7 +432,7 @@ def _to_wall(
     foot_x = xs[at] - inward_x / norm * reach
     foot_y = ys[at] - inward_y / norm * reach
     distance = np.hypot(xs - foot_x, ys - foot_y)
-    near = cells & (distance <= LEVEL_WALL_FIT_RADIUS_M) & (information > 0)
+    near = cells & (distance <= LEVEL_CONE_RADIUS_M) & (information > 0)
     if near.sum() < 3:
         return value
     weight = information[near] * grid.cell_area
