@@ -239,12 +239,13 @@ def level_surface(
     region = grid.inside > 0
     weight = np.where(measured & np.isfinite(heights), information, 0.0)
     weighted = np.where(weight > 0, weight * np.nan_to_num(heights), 0.0)
-    means: list[np.ndarray] = []
-    sigmas: list[np.ndarray] = []
     surface = np.full(grid.shape, np.nan)
     sigma = np.full(grid.shape, np.inf)
     agrees = measured.copy()
     known = np.zeros(grid.shape, dtype=bool)
+    # every finer mean's band (mean -+ LEVEL_AGREE_SIGMAS sigma), intersected
+    lower = np.full(grid.shape, -np.inf)
+    upper = np.full(grid.shape, np.inf)
     for scale_m in LEVEL_SCALES_M:
         cells = max(scale_m / grid.step, 1.0)
         mean_weight = masked_smooth(weight, region, cells)
@@ -253,15 +254,13 @@ def level_surface(
             spread = np.sqrt(_kernel_share(cells) / (grid.cell_area * mean_weight))
         mean = np.where(measured, mean, np.nan)
         spread = np.where(np.isfinite(mean) & (mean_weight > 0), spread, np.inf)
-        for finer, finer_sigma in zip(means, sigmas, strict=True):
-            with np.errstate(invalid="ignore"):
-                agrees &= np.abs(mean - finer) <= LEVEL_AGREE_SIGMAS * finer_sigma
-        agrees &= np.isfinite(mean)
+        with np.errstate(invalid="ignore"):
+            agrees &= np.isfinite(mean) & (mean >= lower) & (mean <= upper)
+            lower = np.maximum(lower, mean - LEVEL_AGREE_SIGMAS * spread)
+            upper = np.minimum(upper, mean + LEVEL_AGREE_SIGMAS * spread)
         surface = np.where(agrees, mean, surface)
         sigma = np.where(agrees, spread, sigma)
         known |= measured & (spread <= LEVEL_SIGMA_M)
-        means.append(mean)
-        sigmas.append(spread)
     return surface, sigma, known
 
 

@@ -33,29 +33,31 @@ def cell_information(
     `moments` are the fused points' per (cell, camera) counts and sums; each camera's mean
     height in the cell sets its range and drop to the cell (its noise, a few tenths of a
     metre against a drop of 5-10 m, barely moves them)."""
-    xs, ys = grid.centres()
-    cell, camera = moments.cell, moments.camera.astype(np.int64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = moments.sum_z / moments.count
-    origins = np.array([c.extrinsic[:3, 3] for c in cameras], dtype=np.float64)
-    axes = np.array([c.extrinsic[:3, 2] for c in cameras], dtype=np.float64)  # optical axes
-    focal = np.array(
-        [float(c.intrinsics["fx"]) if c.intrinsics else 1.0 for c in cameras], dtype=np.float64
-    )
-    o, axis, f = origins[camera], axes[camera], focal[camera]
-    rel = np.column_stack([xs.ravel()[cell], ys.ravel()[cell], z]) - o
-    depth = np.einsum("ij,ij->i", rel, axis)
-    reach = np.linalg.norm(rel, axis=1)
-    drop = -rel[:, 2]
-    usable = np.isfinite(z) & (depth > 0) & (drop > 0)
-    depth, reach, drop = (np.where(usable, a, 1.0) for a in (depth, reach, drop))
-    rms_v = depth_rms_m(depth, 1.0, noise_factor) / f * drop / depth  # vertical, per pixel
-    pixel_area = np.square(reach / f) * reach / drop  # one pixel's footprint on the ground
-    variance_area = (
-        np.square(rms_v)
-        * pixel_area
-        * (CORRELATED_SHARE * blob_area_px() + (1.0 - CORRELATED_SHARE))
-    )
-    covered = np.minimum(1.0, moments.count * pixel_area / grid.cell_area)
-    information = np.where(usable, covered / variance_area, 0.0)
-    return np.bincount(cell, information, moments.n_cells).reshape(grid.shape)
+    step, (x0, y0) = grid.step, grid.origin
+    cols = grid.shape[1]
+    share = CORRELATED_SHARE * blob_area_px() + (1.0 - CORRELATED_SHARE)
+    information = np.zeros(moments.n_cells)
+    # one camera at a time (its pairs only, component by component): the pairs of a silo at
+    # 1 cm run to millions, and (pairs, 3) float64 temporaries to hundreds of MB
+    for index, cloud in enumerate(cameras):
+        pairs = np.flatnonzero(moments.camera == index)
+        if len(pairs) == 0:
+            continue
+        cell = moments.cell[pairs]
+        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
+        (ox, oy, oz), (ax, ay, az) = cloud.extrinsic[:3, 3], cloud.extrinsic[:3, 2]
+        row, col = np.divmod(cell, cols)
+        across_x = x0 + (col + 0.5) * step - ox
+        across_y = y0 + (row + 0.5) * step - oy
+        with np.errstate(invalid="ignore", divide="ignore"):
+            drop = oz - moments.sum_z[pairs] / moments.count[pairs]
+        depth = across_x * ax + across_y * ay - drop * az
+        reach = np.sqrt(across_x**2 + across_y**2 + drop**2)
+        usable = np.isfinite(drop) & (depth > 0) & (drop > 0)
+        depth, reach, drop = (np.where(usable, a, 1.0) for a in (depth, reach, drop))
+        rms_v = depth_rms_m(depth, focal, noise_factor) * drop / depth  # vertical, per pixel
+        pixel_area = np.square(reach / focal) * reach / drop  # a pixel's footprint on the ground
+        covered = np.minimum(1.0, moments.count[pairs] * pixel_area / grid.cell_area)
+        contribution = np.where(usable, covered / (np.square(rms_v) * pixel_area * share), 0.0)
+        information += np.bincount(cell, contribution, moments.n_cells)
+    return information.reshape(grid.shape)
