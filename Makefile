@@ -39,7 +39,7 @@ test: system-deps $(STAMP)
 	$(VENV)/bin/ruff check silo_agent tests bench
 	$(VENV)/bin/ruff format --check silo_agent tests bench
 	$(VENV)/bin/mypy
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 # The surveyor's tool the benchmarks compare against (Debian's cloudcompare, run headless).
 bench: $(STAMP)

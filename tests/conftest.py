@@ -43,3 +43,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if "broker" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.broker)
+    # modules with slow tests first, so `make test`'s workers (one module each at a time) do not
+    # end on a long one while the other idles; the same order on every worker, as xdist needs
+    slow_modules = {item.module for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.module not in slow_modules)

@@ -48,6 +48,7 @@ def run() -> tuple[RobotRig, Grid, LiveMap, list[Step]]:
     return rig, grid, live, steps
 
 
+@pytest.mark.slow  # the module's 21 maps
 def test_the_map_follows_the_raked_surface_within_1cm_rms(run):
     _rig, grid, _live, steps = run
     xs, ys = grid.centres()
@@ -60,6 +61,7 @@ def test_the_map_follows_the_raked_surface_within_1cm_rms(run):
         assert rms < 0.01, f"t={step.t}: {rms * 100:.2f} cm RMS"
 
 
+@pytest.mark.slow  # the module's 21 maps
 def test_no_robot_shaped_bump(run):
     """Inside the footprint no cell stands more than 2 cm above the grain under the robot."""
     _rig, grid, _live, steps = run
@@ -71,6 +73,7 @@ def test_no_robot_shaped_bump(run):
         assert step.update.held[under].all(), f"t={step.t}: footprint not all held"
 
 
+@pytest.mark.slow  # the module's 21 maps
 def test_the_robot_is_found_where_it_is(run):
     _rig, _grid, _live, steps = run
     for step in steps:
@@ -80,6 +83,7 @@ def test_the_robot_is_found_where_it_is(run):
         assert robot.top_z == pytest.approx(step.pose.z + 0.3, abs=0.05)
 
 
+@pytest.mark.slow  # the module's 21 maps
 def test_changed_mask_covers_the_raked_cells(run):
     rig, grid, _live, steps = run
     xs, ys = grid.centres()

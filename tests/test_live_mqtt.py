@@ -130,6 +130,7 @@ def listener(broker):
     got.close()
 
 
+@pytest.mark.slow
 def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, listener):
     config = live_config(
         tmp_path / "agent.toml",
@@ -201,6 +202,7 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
         agent.kill()
 
 
+@pytest.mark.slow
 def test_a_full_scan_pre_empts_live_and_live_resumes(tmp_path: Path, broker, listener):
     config = live_config(
         tmp_path / "agent.toml",

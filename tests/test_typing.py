@@ -45,7 +45,7 @@ def test_make_test_runs_lint_format_and_types_before_the_suite(tmp_path: Path) -
         "ruff check silo_agent tests bench",
         "ruff format --check silo_agent tests bench",
         "mypy",
-        "python -m pytest -q",
+        "python -m pytest -q -n 2 --dist loadfile",
     ]
 
 
