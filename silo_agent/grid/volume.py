@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.smooth import masked_smooth
@@ -211,7 +212,9 @@ LEVEL_CONE_SIGMAS = 3.0  # a fitted cone's slope must stand this many sigmas cle
 LEVEL_CONE_MIN_SHARE = 0.7  # ... on a disc of which this share holds measured grain
 LEVEL_CONE_MAX_TILT = 0.5  # ... and fall all round: a one-sided tilt under half the slope
 LEVEL_CONE_RADIUS_M = 1.5  # with a noise model, a cone's tip is fitted this far round it
+LEVEL_CELL_GAP_M = 0.05  # ... a disc's share counting cells this close between measured ones
 LEVEL_MIN_KNOWN_SHARE = 0.5  # read so if this share of the grain is known to LEVEL_SIGMA_M
+LEVEL_GRID_M = 0.05  # on a finer grid levels are read on blocks of about this size
 
 
 def _kernel_share(sigma_cells: float) -> float:
@@ -279,14 +282,20 @@ def _cone_or_mean(
     LEVEL_CONE_SIGMAS of its own noise and LEVEL_CONE_MIN_SLOPE, on a disc mostly measured
     (not cut by the wall band or the edge of what was seen), and its tip lies beyond `mean`,
     the surface averaged there (averaging rounds a tip off, never sharpens it); else `mean`."""
-    xs, ys = grid.centres()
-    distance = np.hypot(xs - xs[at], ys - ys[at])
-    disc = (grid.inside > 0) & (distance <= LEVEL_CONE_RADIUS_M)
+    rows, cols, (row, col) = _window(grid, at, LEVEL_CONE_RADIUS_M)
+    xs, ys = _centres(grid, rows, cols)
+    heights, cells, information = heights[rows, cols], cells[rows, cols], information[rows, cols]
+    distance = np.hypot(xs - xs[row, col], ys - ys[row, col])
+    disc = (grid.inside[rows, cols] > 0) & (distance <= LEVEL_CONE_RADIUS_M)
     near = cells & disc & (information > 0)
-    if near.sum() < max(3, LEVEL_CONE_MIN_SHARE * disc.sum()):
+    # on a fine grid at long range a pixel covers several cells: cells between measured ones
+    # count as measured for the share (not for the fit)
+    gap = max(0, round(LEVEL_CELL_GAP_M / grid.step) - 1)
+    covered = ndimage.maximum_filter(cells, size=2 * gap + 1) if gap else cells
+    if near.sum() < 3 or (covered & disc).sum() < LEVEL_CONE_MIN_SHARE * disc.sum():
         return mean
     weight = information[near] * grid.cell_area  # inverse variance of each cell
-    bearing = np.arctan2(ys - ys[at], xs - xs[at])[near]
+    bearing = np.arctan2(ys - ys[row, col], xs - xs[row, col])[near]
     d = distance[near]
     design = np.column_stack([np.ones(len(d)), d, d * np.cos(bearing), d * np.sin(bearing)])
     normal = design.T @ (design * weight[:, None])
@@ -351,7 +360,12 @@ def grain_levels(
     weights = grid.inside[grain]
     mean = float(np.sum(heights[grain] * weights) / np.sum(weights))
     if information is not None:
-        levels = _trusted_levels(grid, heights, measured, information, mean, wall_distance)
+        level_grid, level_heights, level_measured, level_information, level_wall = _level_grid(
+            grid, heights, measured, information, wall_distance
+        )
+        levels = _trusted_levels(
+            level_grid, level_heights, level_measured, level_information, mean, level_wall
+        )
         if levels is not None:
             return levels
     smooth = masked_smooth(heights, region, scale)
@@ -423,13 +437,18 @@ def _to_wall(
     reach = float(wall_distance[at])
     if not np.isfinite(reach) or reach > LEVEL_WALL_BAND_M + 2 * grid.step:
         return value
-    inward_y, inward_x = (g[at] for g in np.gradient(wall_distance, grid.step))
+    rows, cols, (row, col) = _window(grid, at, LEVEL_CONE_RADIUS_M + reach)
+    local = wall_distance[rows, cols]
+    if min(local.shape) < 2:
+        return value
+    inward_y, inward_x = (float(g[row, col]) for g in np.gradient(local, grid.step))
     norm = float(np.hypot(inward_x, inward_y))
     if not norm > 0:
         return value
-    xs, ys = grid.centres()
-    foot_x = xs[at] - inward_x / norm * reach
-    foot_y = ys[at] - inward_y / norm * reach
+    xs, ys = _centres(grid, rows, cols)
+    heights, cells, information = heights[rows, cols], cells[rows, cols], information[rows, cols]
+    foot_x = xs[row, col] - inward_x / norm * reach
+    foot_y = ys[row, col] - inward_y / norm * reach
     distance = np.hypot(xs - foot_x, ys - foot_y)
     near = cells & (distance <= LEVEL_CONE_RADIUS_M) & (information > 0)
     if near.sum() < 3:
@@ -447,3 +466,55 @@ def _to_wall(
     if not rises and slope < -clear:
         return max(value, float(tip))
     return value
+
+
+def _window(
+    grid: Grid, at: tuple[int, int], radius_m: float
+) -> tuple[slice, slice, tuple[int, int]]:
+    """The rows and columns of the grid within `radius_m` of cell `at` (a square), and `at`
+    inside them: a cone's fit reads a few thousand cells, not the grid's millions."""
+    reach = int(np.ceil(radius_m / grid.step)) + 1
+    row, col = at
+    top, left = max(row - reach, 0), max(col - reach, 0)
+    return slice(top, row + reach + 1), slice(left, col + reach + 1), (row - top, col - left)
+
+
+def _centres(grid: Grid, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
+    """`grid.centres()` of a window."""
+    n_rows, n_cols = grid.shape
+    xs = grid.origin[0] + (np.arange(n_cols)[cols] + 0.5) * grid.step
+    ys = grid.origin[1] + (np.arange(n_rows)[rows] + 0.5) * grid.step
+    return np.meshgrid(xs, ys)
+
+
+def _level_grid(
+    grid: Grid,
+    heights: np.ndarray,
+    measured: np.ndarray,
+    information: np.ndarray,
+    wall_distance: np.ndarray | None,
+) -> tuple[Grid, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The grid, heights, measured cells, information and wall distance levels are read on:
+    a grid finer than LEVEL_GRID_M in blocks of about that size (heights information-weighted,
+    information and wall distance averaged, a block measured if a cell of it is). Levels
+    average over 0.15 m and more anyway; at 1 cm a pixel seen from 10 m covers several cells,
+    most cells hold no point, and ten smoothings of millions of cells cost seconds."""
+    factor = round(LEVEL_GRID_M / grid.step)
+    if factor < 2:
+        return grid, heights, measured, information, wall_distance
+    rows, cols = (-(-n // factor) for n in grid.shape)
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        padded = np.zeros((rows * factor, cols * factor))
+        padded[: grid.shape[0], : grid.shape[1]] = values
+        return padded.reshape(rows, factor, cols, factor).mean(axis=(1, 3))
+
+    weight = np.where(measured & np.isfinite(heights), information, 0.0)
+    block_weight = mean(weight)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        block_heights = mean(weight * np.nan_to_num(heights)) / block_weight
+    coarse = Grid(grid.origin, grid.step * factor, (rows, cols), mean(grid.inside))
+    block_wall = None
+    if wall_distance is not None:
+        block_wall = mean(np.nan_to_num(wall_distance, nan=np.inf, posinf=1e9))
+    return coarse, block_heights, block_weight > 0, block_weight, block_wall
