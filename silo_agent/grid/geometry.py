@@ -106,6 +106,11 @@ def check_polygon(polygon: np.ndarray) -> str | None:
     count = len(polygon)
     i, j = np.triu_indices(count, k=2)
     keep = ~((i == 0) & (j == count - 1))  # first and last edge share a vertex
+    # only edges whose bounding boxes meet can cross: a bin's 720-gon has 258,000 pairs of
+    # edges, of which a few thousand meet, and the full test of all took 70 ms a region
+    low, high = np.minimum(start, end), np.maximum(start, end)
+    keep &= (low[i, 0] <= high[j, 0]) & (low[j, 0] <= high[i, 0])
+    keep &= (low[i, 1] <= high[j, 1]) & (low[j, 1] <= high[i, 1])
     i, j = i[keep], j[keep]
     crossing = _segments_cross(start[i], end[i], start[j], end[j])
     if np.any(crossing):
