@@ -20,6 +20,7 @@ import numpy as np
 
 from silo_agent.base.d455 import CORRELATED_SHARE, blob_area_px, depth_rms_m
 from silo_agent.grid.grid import Grid
+from silo_agent.grid.volume import LEVEL_GRID_M
 from silo_agent.reconstruct.fuse import CellMoments
 from silo_agent.scan import CameraCloud
 
@@ -32,11 +33,16 @@ def cell_information(
 
     `moments` are the fused points' per (cell, camera) counts and sums; each camera's mean
     height in the cell sets its range and drop to the cell (its noise, a few tenths of a
-    metre against a drop of 5-10 m, barely moves them)."""
+    metre against a drop of 5-10 m, barely moves them). On a grid finer than LEVEL_GRID_M
+    (levels are read on blocks of about that size) a point informs its pixel's footprint:
+    at 1 cm a pixel seen from 10 m covers several cells, most of which hold no point, so the
+    coverage is counted per block and the block's information shared by its measured cells."""
     step, (x0, y0) = grid.step, grid.origin
     cols = grid.shape[1]
     share = CORRELATED_SHARE * blob_area_px() + (1.0 - CORRELATED_SHARE)
     information = np.zeros(moments.n_cells)
+    factor = max(1, round(LEVEL_GRID_M / step))  # levels read on blocks of factor^2 cells
+    block_cols = -(-cols // factor)
     # one camera at a time (its pairs only, component by component): the pairs of a silo at
     # 1 cm run to millions, and (pairs, 3) float64 temporaries to hundreds of MB
     for index, cloud in enumerate(cameras):
@@ -57,7 +63,21 @@ def cell_information(
         depth, reach, drop = (np.where(usable, a, 1.0) for a in (depth, reach, drop))
         rms_v = depth_rms_m(depth, focal, noise_factor) * drop / depth  # vertical, per pixel
         pixel_area = np.square(reach / focal) * reach / drop  # a pixel's footprint on the ground
-        covered = np.minimum(1.0, moments.count[pairs] * pixel_area / grid.cell_area)
-        contribution = np.where(usable, covered / (np.square(rms_v) * pixel_area * share), 0.0)
+        variance_area = np.square(rms_v) * pixel_area * share
+        if factor < 2:
+            covered = np.minimum(1.0, moments.count[pairs] * pixel_area / grid.cell_area)
+            contribution = np.where(usable, covered / variance_area, 0.0)
+        else:  # a point informs its pixel's footprint, not just the cell it fell in
+            block = (row // factor) * block_cols + col // factor
+            footprint = np.where(usable, moments.count[pairs] * pixel_area, 0.0)
+            area = np.bincount(block, footprint)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                per_area = np.bincount(block, footprint / variance_area) / area
+                covered = np.minimum(1.0, area / (grid.cell_area * factor * factor))
+                cells = np.bincount(block, usable.astype(np.float64))
+                # the block's information, shared by the camera's cells in it (their mean
+                # over the block's factor^2 cells is the block's)
+                spread = covered * per_area * factor * factor / cells
+            contribution = np.where(usable, spread[block], 0.0)
         information += np.bincount(cell, contribution, moments.n_cells)
     return information.reshape(grid.shape)
