@@ -12,7 +12,7 @@ import pytest
 from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
-from silo_agent.reconstruct.fill import laplace_system, membrane_fill
+from silo_agent.reconstruct.fill import _classify_holes, laplace_system, membrane_fill
 
 _STEPS = ((-1, 0), (0, -1), (0, 1), (1, 0))
 
@@ -139,3 +139,72 @@ def test_a_domain_cell_cut_off_from_data_gives_nan_and_a_warning() -> None:
     with pytest.warns(RuntimeWarning, match="no observed cell to fill from"):
         filled = membrane_fill(height, known, domain)
     assert np.all(np.isnan(filled[domain & ~known]))
+
+
+def _deep_and_scattered(side: int, seed: int):
+    """A square hole `side` cells wide (deep: algebraic multigrid) beside scattered unknown
+    cells (shallow: conjugate gradients) in one grid."""
+    rng = np.random.default_rng(seed)
+    shape = (side + 40, 2 * side + 60)
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
+    height = 1.0 + 0.3 * np.sin(rows / 9.0) + 0.2 * np.cos(cols / 7.0)
+    known = rng.random(shape) < 0.6
+    known[:, side + 20 :] = True
+    known[20 : 20 + side, 20 : 20 + side] = True
+    known[20 : 20 + side, side + 40 : 2 * side + 40] = False  # the deep hole
+    return np.where(known, height, np.nan), known, np.ones(shape, dtype=bool)
+
+
+def test_a_deep_hole_is_solved_to_rounding_by_multigrid_beside_scattered_cells() -> None:
+    height, known, domain = _deep_and_scattered(200, seed=7)
+    unknown = domain & ~known
+    deep, cut_off = _classify_holes(known, domain, unknown)
+    assert deep.sum() == 200 * 200 and not cut_off.any()  # the square alone is deep
+    assert unknown.sum() > 30_000  # the old path stopped at a 1e-5 residual here
+    filled = membrane_fill(height, known, domain)
+    np.testing.assert_array_equal(filled[known], height[known])
+    assert np.all(np.isfinite(filled[unknown]))
+    rhs = laplace_system(height, unknown, domain).rhs
+    residual = _harmonic_residual(filled, unknown, domain)
+    assert np.linalg.norm(residual) <= 1.01e-10 * np.linalg.norm(rhs)
+    # each part on its own, too: the scattered cells' fill is not hidden by the hole's
+    shallow = unknown & ~deep
+    residual_grid = np.zeros(unknown.shape)
+    residual_grid[unknown] = residual
+    shallow_rhs = laplace_system(height, shallow, domain & ~deep).rhs
+    assert np.linalg.norm(residual_grid[shallow]) <= 1.01e-10 * np.linalg.norm(shallow_rhs)
+
+
+@pytest.mark.parametrize("full_domain", [True, False])
+def test_multigrid_fill_matches_a_direct_solve(full_domain) -> None:
+    height, known, domain = _case((90, 97), seed=11, full_domain=full_domain)
+    known[10:70, 12:72] = False  # 30 cells deep: multigrid
+    unknown = domain & ~known
+    deep, _ = _classify_holes(known, domain, unknown)
+    assert deep.sum() > 3000
+    filled = membrane_fill(height, known, domain)
+    # SuperLU on the equations (laplace_system is checked cell by cell above)
+    system = laplace_system(np.where(known, height, 0.0), unknown, domain)
+    expected = np.where(known, height, np.nan)
+    np.put(expected, system.cells, sparse_linalg.spsolve(system.matrix().tocsc(), system.rhs))
+    np.testing.assert_allclose(filled, expected, atol=1e-8)
+
+
+def test_a_large_cut_off_part_gives_nan_and_a_warning_and_the_rest_is_filled() -> None:
+    shape = (60, 60)
+    known = np.zeros(shape, dtype=bool)
+    known[:, 0] = True
+    domain = np.zeros(shape, dtype=bool)
+    domain[:, :30] = True
+    domain[10:50, 40:] = True  # an island of the region with no observed cell
+    height = np.where(known, 1.0 + np.arange(60.0)[:, None] / 60.0, np.nan)
+    unknown = domain & ~known
+    with pytest.warns(RuntimeWarning, match="no observed cell to fill from"):
+        filled = membrane_fill(height, known, domain)
+    island = unknown & (np.arange(60) >= 40)[None, :]
+    assert island.sum() == 800 and np.all(np.isnan(filled[island]))
+    rest = unknown & ~island
+    assert np.all(np.isfinite(filled[rest]))
+    residual = _harmonic_residual(np.where(island, 0.0, filled), rest, domain & ~island)
+    rhs = laplace_system(height, rest, domain & ~island).rhs
+    assert np.linalg.norm(residual) <= 1.01e-10 * np.linalg.norm(rhs)

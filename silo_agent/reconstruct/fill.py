@@ -8,15 +8,27 @@ Observed cells keep their measured value exactly; the fill is smooth and continu
 them. Cost O(cells). Its coarse levels average over wide areas, so a floor hole beside a pile
 borrows pile height.
 
-`membrane_fill`: the harmonic surface of each hole's own boundary. Its 5-point Laplace
-equations are solved by scipy's conjugate gradients started from the solution on a grid twice
-as coarse (itself solved the same way, down to a small dense system). That start is our own
-numerics, and bench/results/scaling.md ("Own numerics against the libraries") finds it slower
-than scipy's direct solve (SuperLU) on the bench's fills: 0.31 s against 0.17 s on a 12 m silo
-(230,000 unknowns), 3.8 s against 0.20 s on a bay a third unobserved, where the iteration runs
-to its cap. By the project's rule the fill should move to the library solve; that waits on its
-memory for a 20 m silo's millions of unknowns and on the accuracy report (the direct solve is
-exact, this stops at a 1e-5 residual, up to 2 cm from the exact fill in a large hole).
+`membrane_fill`: the harmonic surface of each hole's own boundary, from its 5-point Laplace
+equations. Which solver pays depends on the hole (bench/results/fill.md, issue 22), so each
+hole (4-connected unknown cells) is classified before solving, at the cost of a chessboard
+distance transform and a labelling (10-60 ms on 0.2-1.4 M cells):
+- most holes (scattered cells, and the shadows on the accuracy bench's scenes, which percolate
+  into components of 36,000-960,000 cells mostly one or two cells from data): scipy's
+  conjugate gradients started from the solution on a grid twice as coarse (itself solved the
+  same way, down to a small dense system), to a 1e-10 residual up to 30,000 unknowns, 1e-5
+  above. On those scenes it converges in <= 52 iterations and beats the libraries: pyamg's
+  setup alone (about 2 us an unknown) costs more than the whole solve, SuperLU 6x slower;
+- a hole 24 cells or more from any known cell that is small (<= 30,000 cells) or compact
+  (no more cells than 5 x its depth squared: a square hole has 4): pyamg's classical
+  algebraic multigrid as the preconditioner of conjugate gradients, to 1e-10, without the
+  coarse recursion. The warm-started iteration needs hundreds of iterations there (a 160,000-
+  cell square hole 2.0 s against 0.6 s; 400,000: 10 s against 2 s), and a few such holes in a
+  bay a third unobserved held the whole system's iteration back (its fill 0.25-0.4 s against
+  0.17-0.22 s). Its import costs 0.5 s, once a process, when first needed;
+- a hole with no known cell next to it: left NaN, with a RuntimeWarning.
+Outputs where no hole is routed to pyamg are those of the warm-started iteration alone.
+SuperLU (exact) was 1.5-3x slower than pyamg on large holes with 2x its memory (1.3 GB at 1 M
+unknowns), slower than the warm start on scattered ones: not used.
 
 `repose_fill` (on request, `fill = "repose"`): the membrane, capped by the level surface
 that rises gently from the known cells around a hole and raised to the flank that falls from
@@ -86,6 +98,10 @@ _EXACT_MAX_UNKNOWNS = 30_000  # at or below: solved to rounding, as a direct sol
 _EXACT_RTOL = 1e-10  # relative residual of those
 _LARGE_RTOL = 1e-5  # above: a large hole's fill, warm-started, needs no more than this
 _MAX_ITERATIONS = 1000
+# algebraic multigrid for a hole this many cells deep (chessboard distance to data) or more,
+_AMG_MIN_DEPTH = 24
+_AMG_SMALL_HOLE = 30_000  # if it has no more cells than this (its setup is then cheap)
+_AMG_MAX_SPREAD = 5.0  # or no more than this times its depth squared (compact, not percolated)
 
 
 @dataclass(frozen=True)
@@ -193,14 +209,72 @@ def _coarsen(
     return coarse, coarse_known, d[::2, ::2] | d[1::2, ::2] | d[::2, 1::2] | d[1::2, 1::2]
 
 
+def _classify_holes(
+    known: np.ndarray, domain: np.ndarray, unknown: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(deep, cut_off) cells of `unknown`. Holes are 4-connected, as the equations couple
+    cells. Deep: a hole with a cell _AMG_MIN_DEPTH or more cells (chessboard distance) from any
+    known cell, small or compact (see _AMG_SMALL_HOLE, _AMG_MAX_SPREAD). Cut off: a hole with
+    no known cell of `domain` next to it (its equations are singular)."""
+    from scipy import ndimage
+
+    anchors = known & domain
+    distance = ndimage.distance_transform_cdt(~anchors, metric="chessboard")
+    labels, count = ndimage.label(unknown)
+    # flags per hole by indexing with the labels of the cells that raise them (O(cells))
+    deep_hole = np.zeros(count + 1, dtype=bool)
+    candidates = np.unique(labels[(distance >= _AMG_MIN_DEPTH) & unknown])
+    if candidates.size:
+        depth = ndimage.maximum(distance, labels, candidates)
+        size = np.bincount(labels.ravel(), minlength=count + 1)[candidates]
+        compact = size <= _AMG_MAX_SPREAD * np.asarray(depth) ** 2
+        deep_hole[candidates] = (size <= _AMG_SMALL_HOLE) | compact
+    padded = np.pad(anchors, 1)
+    beside = padded[:-2, 1:-1] | padded[2:, 1:-1] | padded[1:-1, :-2] | padded[1:-1, 2:]
+    anchored_hole = np.zeros(count + 1, dtype=bool)  # a known 4-neighbour in the domain
+    anchored_hole[labels[beside]] = True
+    deep_hole[0] = anchored_hole[0] = False  # label 0: not a hole
+    cut_off = unknown & ~anchored_hole[labels]
+    deep = deep_hole[labels] & ~cut_off
+    return deep, cut_off
+
+
 def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
     """Fill the unknown cells of `domain` with the discrete harmonic surface of their boundary.
 
     The fill is decided by the measured cells around each hole only (a floor hole next to a
     pile stays floor), is smooth, and never overshoots the boundary values. A system small
-    enough is solved directly; a larger one by conjugate gradients from the fill of the grid
-    coarsened 2 x 2, which leaves only the fine detail to iterate on.
+    enough is solved directly. Otherwise each hole is solved by the method that suits it (see
+    the module's docstring): a deep hole, small or compact, by algebraic multigrid (pyamg);
+    the others (scattered cells, shadows percolating among them) by conjugate gradients from
+    the fill of the grid coarsened 2 x 2, which leaves only the fine detail to iterate on.
+    The two sets of holes share no equation. A hole with no known cell next to it is left
+    NaN, with a RuntimeWarning.
     """
+    if not np.any(known & domain):
+        raise ValueError("no observed cell to fill from")
+    unknown = domain & ~known
+    if np.count_nonzero(unknown) <= _DENSE_MAX_UNKNOWNS:
+        return _warm_cg_fill(height, known, domain)
+    deep, cut_off = _classify_holes(known, domain, unknown)
+    if np.any(cut_off):
+        warnings.warn(
+            "membrane fill: a part of the region has no observed cell to fill from",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    if not np.any(deep | cut_off):
+        return _warm_cg_fill(height, known, domain)  # the path as it was
+    shallow = unknown & ~deep & ~cut_off
+    out = _warm_cg_fill(height, known, domain & ~deep & ~cut_off)
+    if np.any(deep):
+        out = np.where(deep, _multigrid_fill(height, known, domain & ~shallow & ~cut_off), out)
+    return out
+
+
+def _warm_cg_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
+    """The membrane by conjugate gradients warm-started from the 2 x 2 coarser fill (itself
+    solved the same way, down to a dense solve)."""
     if not np.any(known & domain):
         raise ValueError("no observed cell to fill from")
     unknown = domain & ~known
@@ -212,11 +286,25 @@ def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> 
     if count <= _DENSE_MAX_UNKNOWNS:
         np.put(out, system.cells, _dense_solve(system))
         return out
-    coarse = np.nan_to_num(membrane_fill(*_coarsen(height, known, domain)))
+    coarse = np.nan_to_num(_warm_cg_fill(*_coarsen(height, known, domain)))
     r, c = np.divmod(system.cells, height.shape[1])
     guess = coarse[r // 2, c // 2]  # each fine cell starts from its coarse block's value
     rtol = _EXACT_RTOL if count <= _EXACT_MAX_UNKNOWNS else _LARGE_RTOL
     np.put(out, system.cells, _conjugate_gradients(system, guess, rtol, _MAX_ITERATIONS))
+    return out
+
+
+def _multigrid_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
+    """The membrane by pyamg's classical (Ruge-Stuben) algebraic multigrid as a conjugate
+    gradients preconditioner, to _EXACT_RTOL whatever the size (every hole must touch a known
+    cell: the system is then symmetric positive definite)."""
+    import pyamg
+
+    out = np.where(known, height, np.nan)
+    system = laplace_system(height, domain & ~known, domain)
+    hierarchy = pyamg.ruge_stuben_solver(system.matrix())
+    solution = hierarchy.solve(system.rhs, tol=_EXACT_RTOL, maxiter=_MAX_ITERATIONS, accel="cg")
+    np.put(out, system.cells, solution)
     return out
 
 
