@@ -4,15 +4,18 @@ Each case is one fill's inputs (heights, known cells, region); each is filled by
 (conjugate gradients warm-started from a 2x coarser fill, recursively: `_warm_cg_fill`) and by
 `membrane_fill` as it is now (holes classified before solving: deep holes by pyamg's algebraic
 multigrid, the rest by the old path), each in a fresh process: wall and CPU seconds, and the
-peak resident memory above the process's after loading the inputs and importing the solvers.
+peak memory of the arrays the solve allocates (tracemalloc, a second run).
 Accuracy: the relative residual ||A h - b|| / ||b|| of the 5-point equations (laplace_system),
 and the largest difference between the two fills.
 
-Cases: one square hole of side S in a grid with a 20-cell margin (the hole's depth is S / 2);
-a third of the cells unknown at random (scattered cells); shadow strips 12 cells wide; the
-fill of bay scans (benchlib.bay_scan, 1 cm: the batch of bench/silos.py section (b)). Then
-section (b) itself with the new path: the bay batch, one `process` against CloudCompare once
-per scan (`--bay-batch`, needs CloudCompare).
+Cases: one square hole of side S in a grid with a 20-cell margin (the hole's depth is S / 2),
+heights sin + cos about 0 m, and once 2 m higher (the old path's tolerance is relative to the
+right side, which the known heights make: a higher surface stops it sooner); a third of the
+cells unknown at random (scattered cells); shadow strips 12 cells wide; the fill of bay scans
+(benchlib.bay_scan, 1 cm: the batch of bench/silos.py section (b)). Then (`--bay-batch`, needs
+CloudCompare) section (b) itself with this tree, one `process` of the batch against
+CloudCompare once per scan, and (`--old-tree`) the same batch by the old code and by this
+tree's again, alternating.
 """
 
 from __future__ import annotations
@@ -20,31 +23,30 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from benchlib import bay_scan, bay_scene, header
 
 MARGIN = 20
 Inputs = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def _surface(shape: tuple[int, int]) -> np.ndarray:
+def _surface(shape: tuple[int, int], offset: float = 0.0) -> np.ndarray:
     rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
-    return 1.0 + 0.3 * np.sin(cols / 30.0) + 0.2 * np.cos(rows / 17.0)
+    return offset + np.sin(cols / 30.0) + np.cos(rows / 17.0)
 
 
-def square(side: int) -> Inputs:
+def square(side: int, offset: float = 0.0) -> Inputs:
     n = side + 2 * MARGIN
     known = np.ones((n, n), dtype=bool)
     known[MARGIN : MARGIN + side, MARGIN : MARGIN + side] = False
-    return _surface((n, n)), known, np.ones((n, n), dtype=bool)
+    return _surface((n, n), offset), known, np.ones((n, n), dtype=bool)
 
 
 def scattered(side: int) -> Inputs:
@@ -61,6 +63,8 @@ def strips(side: int) -> Inputs:
 
 def bay_fills(count: int) -> list[Inputs]:
     """The membrane fill's inputs of `count` bay scans, captured from reconstruct."""
+    from benchlib import bay_scan, bay_scene
+
     import silo_agent.reconstruct as reconstruct_module
     from silo_agent.config import ReconstructionConfig
     from silo_agent.sim.simulate import SimRig
@@ -91,20 +95,24 @@ def _solver(path: str) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndar
 
 
 def run_one(inputs: Path, path: str, output: Path) -> None:
-    """In a fresh process: fill `inputs` by `path`, print its time and memory as JSON."""
-    import pyamg  # noqa: F401  imported before the baseline: its import is not the solve's
+    """In a fresh process: fill `inputs` by `path`, print its time and memory as JSON. Memory:
+    the peak of the arrays the solve allocates (tracemalloc, which numpy reports to), from a
+    second, traced run (the process's peak resident size is set by the imports already)."""
+    import pyamg  # noqa: F401  imported beforehand: its import (0.5 s) is not the solve's
     import scipy.sparse.linalg  # noqa: F401
 
     data = np.load(inputs)
     height, known, domain = data["height"], data["known"], data["domain"]
     solve = _solver(path)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     wall, cpu = time.perf_counter(), time.process_time()
     filled = solve(height, known, domain)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    tracemalloc.start()
+    solve(height, known, domain)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
     np.save(output, filled)
-    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_mb": (peak - base) / 1024}))
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_mb": peak / 2**20}))
 
 
 def _residual(filled: np.ndarray, inputs: Inputs) -> float:
@@ -145,12 +153,49 @@ def measure(name: str, inputs: Inputs, root: Path) -> str:
     line = (
         f"| {name} | {int(unknown.sum()):,} | {_depth(inputs)} | {old['wall_s']:.3f} /"
         f" {old['cpu_s']:.3f} | {new['wall_s']:.3f} / {new['cpu_s']:.3f} |"
-        f" {old['peak_mb']:.0f} / {new['peak_mb']:.0f} |"
+        f" {old['peak_mb']:.1f} / {new['peak_mb']:.1f} |"
         f" {_residual(fills['old'], inputs):.1e} / {_residual(fills['new'], inputs):.1e} |"
         f" {difference:.1e} |"
     )
     print(line, flush=True)
     return line
+
+
+def bay_batch(root: Path, old_tree: Path | None) -> list[str]:
+    """bench/silos.py section (b) with this tree, then the same batch by `old_tree`'s code and
+    by this tree's again, alternating (one `process CACHE` of the 12 scans each)."""
+    from benchlib import measured
+    from silos import ENV, PROCESS, section_bay
+
+    lines = section_bay(root)
+    if old_tree is None:
+        return lines
+    cache = root / "bay-cache"
+    command = [*PROCESS, str(cache), "--grid-step", "0.01", "--json"]
+    trees = {"old": old_tree.resolve(), "new": Path(__file__).resolve().parent.parent}
+    rows = []
+    for name, tree in [*trees.items(), *trees.items()]:
+        run = measured(command, None, ENV | {"PYTHONPATH": str(tree)})
+        commit = subprocess.run(
+            ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        count = len(run.stdout.splitlines())
+        rows.append(
+            f"| {name} (`{commit}`) | {run.wall_s / count:.3f} | {run.cpu_s / count:.3f} |"
+            f" {run.peak_mb:.0f} |"
+        )
+    return [
+        *lines,
+        "The same cached batch, old code against new, alternating:",
+        "",
+        "| code | wall s per scan | CPU s per scan | peak MB |",
+        "|---|---|---|---|",
+        *rows,
+        "",
+    ]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -159,6 +204,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--sides", default="100,200,400,632", help="square holes' sides, cells")
     p.add_argument("--bay-scans", type=int, default=3)
     p.add_argument("--bay-batch", action="store_true", help="bench/silos.py section (b) too")
+    p.add_argument("--old-tree", type=Path, help="a checkout of the old code, for the bay batch")
     p.add_argument("--out", type=Path, default=Path("bench/results/fill.md"))
     args = p.parse_args(argv)
     if args.one:
@@ -168,26 +214,27 @@ def main(argv: list[str] | None = None) -> None:
     cases: list[tuple[str, Inputs]] = [
         (f"square hole, side {side}", square(side)) for side in map(int, args.sides.split(","))
     ]
+    cases += [("square hole, side 400, surface 2 m higher", square(400, offset=2.0))]
     cases += [("scattered third, 700 x 700", scattered(700))]
     cases += [("shadow strips 12 wide, 700 x 700", strips(700))]
     cases += [(f"bay scan {k}, 1 cm", inputs) for k, inputs in enumerate(bay_fills(args.bay_scans))]
     lines = [
         "| case | unknowns | depth (cells) | old wall / CPU s | new wall / CPU s |"
-        " old / new peak MB | old / new residual | max difference |",
+        " old / new peak array MB | old / new residual | max difference |",
         "|---|---|---|---|---|---|---|---|",
     ]
     print("\n".join(lines), flush=True)
     with tempfile.TemporaryDirectory(prefix="silo-fill-") as tmp:
         lines += [measure(name, inputs, Path(tmp)) for name, inputs in cases]
         if args.bay_batch:
-            from silos import section_bay
-
-            lines += ["", *section_bay(Path(tmp))]
+            lines += ["", *bay_batch(Path(tmp), args.old_tree)]
     before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
     load = (
         f"- machine load (load average 1 / 5 / 15 min) at start {before}, at end {after}, on"
         f" {os.cpu_count()} cores shared with other work: times are under that load"
     )
+    from benchlib import header
+
     head = header("Membrane fill: solver against hole size and shape")
     text = "\n".join([*head[:-1], load, "", *lines]) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
