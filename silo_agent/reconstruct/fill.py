@@ -22,9 +22,10 @@ distance transform and a labelling (10-60 ms on 0.2-1.4 M cells):
   (no more cells than 5 x its depth squared: a square hole has 4): pyamg's classical
   algebraic multigrid as the preconditioner of conjugate gradients, to 1e-10, without the
   coarse recursion. The warm-started iteration needs hundreds of iterations there (a 160,000-
-  cell square hole 2.0 s against 0.6 s; 400,000: 10 s against 2 s), and a few such holes in a
-  bay a third unobserved held the whole system's iteration back (its fill 0.25-0.4 s against
-  0.17-0.22 s). Its import costs 0.5 s, once a process, when first needed;
+  cell square hole 1.6 s against 0.53 s, 400,000 cells 4.0 s against 1.5 s, its arrays 2.7x
+  the memory: 271 against 101 MB), and the few such holes (about 12,000 cells each) in a bay
+  a third unobserved held the whole system's iteration back (its fill 0.29-0.47 s against
+  0.22-0.24 s). Its import costs 0.5 s, once a process, when first needed;
 - a hole with no known cell next to it: left NaN, with a RuntimeWarning.
 Outputs where no hole is routed to pyamg are those of the warm-started iteration alone.
 SuperLU (exact) was 1.5-3x slower than pyamg on large holes with 2x its memory (1.3 GB at 1 M
