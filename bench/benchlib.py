@@ -83,6 +83,26 @@ def header(title: str, note: str = "") -> list[str]:
     return [*lines, ""]
 
 
+def write_report(
+    out: Path,
+    head: list[str],
+    load_before: tuple[float, float, float],
+    lines: list[str],
+    under: str,
+) -> None:
+    """Write and print a report: `header`'s lines, the machine's load at the start and end of
+    the run with what that load affects (`under`), then the tables."""
+    before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
+    load = (
+        f"- machine load (load average 1 / 5 / 15 min) at start {before}, at end {after}, on"
+        f" {os.cpu_count()} cores shared with other work: {under}"
+    )
+    text = "\n".join([*head[:-1], load, "", *lines]) + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    print(text)
+
+
 def volume_m3(scan: Scan, settings: ReconstructionConfig) -> float:
     """The reconstructed volume of a bench scan; one without a volume is a broken benchmark."""
     result = reconstruct(scan, settings)

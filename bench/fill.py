@@ -228,18 +228,10 @@ def main(argv: list[str] | None = None) -> None:
         lines += [measure(name, inputs, Path(tmp)) for name, inputs in cases]
         if args.bay_batch:
             lines += ["", *bay_batch(Path(tmp), args.old_tree)]
-    before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
-    load = (
-        f"- machine load (load average 1 / 5 / 15 min) at start {before}, at end {after}, on"
-        f" {os.cpu_count()} cores shared with other work: times are under that load"
-    )
-    from benchlib import header
+    from benchlib import header, write_report
 
     head = header("Membrane fill: solver against hole size and shape")
-    text = "\n".join([*head[:-1], load, "", *lines]) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_report(args.out, head, load_before, lines, "times are under that load")
 
 
 if __name__ == "__main__":

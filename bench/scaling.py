@@ -37,6 +37,7 @@ from benchlib import (
     header,
     measured,
     resampled,
+    write_report,
 )
 from scipy import ndimage
 from scipy.sparse.linalg import cg, spsolve
@@ -317,16 +318,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         lines, by_points, by_cells = section_scaling(args.runs, Path(tmp), points, cells, cameras)
     lines += section_largest(by_points, by_cells)
     lines += section_libraries()
-    before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
-    load = (
-        f"- machine load (load average 1 / 5 / 15 min) at start {before}, at end {after}, on"
-        f" {os.cpu_count()} cores shared with other work: times are under that load; peak"
-        " memory is not affected by it"
+    write_report(
+        args.out,
+        head,
+        load_before,
+        lines,
+        "times are under that load; peak memory is not affected by it",
     )
-    text = "\n".join([*head[:-1], load, "", *lines]) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
 
 
 if __name__ == "__main__":

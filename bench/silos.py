@@ -34,6 +34,7 @@ from benchlib import (
     fused_cloud,
     header,
     measured,
+    write_report,
 )
 
 from silo_agent.scan import Scan, write_ply, write_scan
@@ -183,16 +184,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="silo-silos-") as tmp:
         lines = section_silos(args.runs, Path(tmp), diameters)
         lines += section_bay(Path(tmp))
-    before, after = (f"{a:.2f} / {b:.2f} / {c:.2f}" for a, b, c in (load_before, os.getloadavg()))
-    load = (
-        f"- machine load (load average 1 / 5 / 15 min) at start {before}, at end {after}, on"
-        f" {os.cpu_count()} cores shared with other work: wall times are under that load; the"
-        " ratios come from alternating runs in the same minutes; peak memory is load-free"
+    write_report(
+        args.out,
+        head,
+        load_before,
+        lines,
+        "wall times are under that load; the ratios come from alternating runs in the same"
+        " minutes; peak memory is load-free",
     )
-    text = "\n".join([*head[:-1], load, "", *lines]) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
 
 
 if __name__ == "__main__":
