@@ -24,3 +24,10 @@ def dilate_cross(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
         grown[:, :-1] |= out[:, 1:]
         out = grown
     return out
+
+
+def block_sums(values: np.ndarray, k: int) -> np.ndarray:
+    """Sums over k x k blocks (the grid padded with zeros to a multiple of k)."""
+    rows, cols = values.shape
+    padded = np.pad(values, ((0, -rows % k), (0, -cols % k)))
+    return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).sum(axis=(1, 3))

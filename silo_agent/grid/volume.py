@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from silo_agent.grid.filters import block_sums
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.smooth import masked_smooth
 
@@ -267,6 +268,22 @@ def level_surface(
     return surface, sigma, known
 
 
+def _cone_fit(
+    design: np.ndarray, weight: np.ndarray, heights: np.ndarray
+) -> tuple[np.ndarray, float] | None:
+    """Weighted least squares of `heights` on `design` (its second column the distance from the
+    tip, `weight` each cell's inverse variance): the coefficients, and how steep the fitted
+    slope must be to stand clear of flat (LEVEL_CONE_MIN_SLOPE, and LEVEL_CONE_SIGMAS of its
+    own noise); None if the fit is singular."""
+    try:
+        covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
+    except np.linalg.LinAlgError:
+        return None
+    coefficients = covariance @ (design.T @ (weight * heights))
+    clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
+    return coefficients, clear
+
+
 def _cone_or_mean(
     grid: Grid,
     heights: np.ndarray,
@@ -298,13 +315,10 @@ def _cone_or_mean(
     bearing = np.arctan2(ys - ys[row, col], xs - xs[row, col])[near]
     d = distance[near]
     design = np.column_stack([np.ones(len(d)), d, d * np.cos(bearing), d * np.sin(bearing)])
-    normal = design.T @ (design * weight[:, None])
-    try:
-        covariance = np.linalg.inv(normal)
-    except np.linalg.LinAlgError:
+    fit = _cone_fit(design, weight, heights[near])
+    if fit is None:
         return mean
-    tip, slope, tilt_x, tilt_y = covariance @ (design.T @ (weight * heights[near]))
-    clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
+    (tip, slope, tilt_x, tilt_y), clear = fit
     # a cone falls (or rises) alike all round: a rim or a slope falls on one side only
     round_ = np.hypot(tilt_x, tilt_y) < LEVEL_CONE_MAX_TILT * abs(slope)
     cone = (slope > clear if rises else slope < -clear) and round_
@@ -455,12 +469,10 @@ def _to_wall(
         return value
     weight = information[near] * grid.cell_area
     design = np.column_stack([np.ones(int(near.sum())), distance[near]])
-    try:
-        covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
-    except np.linalg.LinAlgError:
+    fit = _cone_fit(design, weight, heights[near])
+    if fit is None:
         return value
-    tip, slope = covariance @ (design.T @ (weight * heights[near]))
-    clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
+    (tip, slope), clear = fit
     if rises and slope > clear:
         return min(value, float(tip))
     if not rises and slope < -clear:
@@ -502,18 +514,16 @@ def _level_grid(
     factor = round(LEVEL_GRID_M / grid.step)
     if factor < 2:
         return grid, heights, measured, information, wall_distance
-    rows, cols = (-(-n // factor) for n in grid.shape)
 
     def mean(values: np.ndarray) -> np.ndarray:
-        padded = np.zeros((rows * factor, cols * factor))
-        padded[: grid.shape[0], : grid.shape[1]] = values
-        return padded.reshape(rows, factor, cols, factor).mean(axis=(1, 3))
+        return block_sums(values, factor) / (factor * factor)
 
     weight = np.where(measured & np.isfinite(heights), information, 0.0)
     block_weight = mean(weight)
     with np.errstate(invalid="ignore", divide="ignore"):
         block_heights = mean(weight * np.nan_to_num(heights)) / block_weight
-    coarse = Grid(grid.origin, grid.step * factor, (rows, cols), mean(grid.inside))
+    inside = mean(grid.inside)
+    coarse = Grid(grid.origin, grid.step * factor, inside.shape, inside)
     block_wall = None
     if wall_distance is not None:
         block_wall = mean(np.nan_to_num(wall_distance, nan=np.inf, posinf=1e9))

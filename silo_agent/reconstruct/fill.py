@@ -45,6 +45,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from silo_agent.grid.filters import block_sums
+
 if TYPE_CHECKING:
     from scipy.sparse import csr_array
 
@@ -315,13 +317,6 @@ LEVEL_SLOPE = 0.02  # a level surface (a floor, levelled grain) rises no more th
 _PAIRS_PER_CHUNK = 1 << 20  # (target, source) distances held at once
 
 
-def _block_sums(values: np.ndarray, k: int) -> np.ndarray:
-    """Sums over k x k blocks (the grid padded with zeros to a multiple of k)."""
-    rows, cols = values.shape
-    padded = np.pad(values, ((0, -rows % k), (0, -cols % k)))
-    return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).sum(axis=(1, 3))
-
-
 def _grown(mask: np.ndarray) -> np.ndarray:
     """`mask` and its eight neighbours."""
     rows, cols = mask.shape
@@ -387,12 +382,12 @@ def repose_bounds(
     """
     k = max(1, round(REPOSE_BLOCK_M / step))
     rows, cols = np.indices(known.shape, dtype=np.float64)
-    count = _block_sums(known.astype(np.float64), k)
+    count = block_sums(known.astype(np.float64), k)
     # a hole: a block holding few points for the scan (its points, not its cells: on a grid
     # finer than the points' spacing most cells of a well-seen surface are empty)
-    block_points = _block_sums(np.where(unknown | known, points, 0).astype(np.float64), k)
+    block_points = block_sums(np.where(unknown | known, points, 0).astype(np.float64), k)
     typical = float(np.median(block_points[block_points > 0])) if np.any(block_points) else 0.0
-    hole = _block_sums(unknown.astype(np.float64), k) > 0
+    hole = block_sums(unknown.astype(np.float64), k) > 0
     hole &= block_points < HOLE_DENSITY * typical
     is_source = (count > 0) & ~hole & _grown(hole)
     cells = np.nonzero(unknown)
@@ -400,11 +395,11 @@ def repose_bounds(
         unbounded = np.full(len(cells[0]), np.inf)
         return -unbounded, unbounded
     n = count[is_source]
-    source_height = _block_sums(np.where(known, height, 0.0), k)[is_source] / n
+    source_height = block_sums(np.where(known, height, 0.0), k)[is_source] / n
     # source positions in cells: the centroid of each block's known cells
     source = (
-        _block_sums(np.where(known, rows, 0.0), k)[is_source] / n,
-        _block_sums(np.where(known, cols, 0.0), k)[is_source] / n,
+        block_sums(np.where(known, rows, 0.0), k)[is_source] / n,
+        block_sums(np.where(known, cols, 0.0), k)[is_source] / n,
     )
     block_rows, block_cols = np.nonzero(_grown(hole))
     centres = ((block_rows + 0.5) * k - 0.5, (block_cols + 0.5) * k - 0.5)
