@@ -151,19 +151,12 @@ def steadied(cloud: CameraCloud) -> CameraCloud:
     return replace(cloud, points=points)
 
 
-def grain_at_wall(
-    shape: BinShape, grid: Grid, heights: np.ndarray, x: np.ndarray, y: np.ndarray
-) -> np.ndarray:
-    """The surface of a filled height map next to wall points (x, y): read 1.5 cells inward,
-    towards the bin's centre (a polygon's: its vertices' mean), so the cell is inside."""
-    row, col = _cell_inward(shape, grid, x, y)
-    return heights[row, col]
-
-
 def _cell_inward(
     shape: BinShape, grid: Grid, x: np.ndarray, y: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(row, col) of the cell `grain_at_wall` reads for wall points (x, y)."""
+    """(row, col) of the cell whose surface gives the grain height at wall points (x, y):
+    1.5 cells inward, towards the bin's centre (a polygon's: its vertices' mean), so the cell
+    is inside."""
     if shape.diameter_m is not None:
         cx, cy = shape.centre
     else:
@@ -179,7 +172,7 @@ def _cell_inward(
 @dataclass(frozen=True)
 class WallCrossing:
     """What `wall_free` reads of one camera's rays, per point: the cell of the first pass's
-    grid that gives the grain height at the wall there (`grain_at_wall`'s), and the height at
+    grid that gives the grain height at the wall there (`_cell_inward`'s), and the height at
     which the ray meets the wall. 12 bytes a point where WallRays holds 29: they are kept
     through the first pass (8 full-resolution cameras: 88 MB against 214 MB)."""
 
