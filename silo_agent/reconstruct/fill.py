@@ -226,11 +226,15 @@ def _classify_holes(
     labels, count = ndimage.label(unknown)
     # flags per hole by indexing with the labels of the cells that raise them (O(cells))
     deep_hole = np.zeros(count + 1, dtype=bool)
-    candidates = np.unique(labels[(distance >= _AMG_MIN_DEPTH) & unknown])
+    deep_cells = (distance >= _AMG_MIN_DEPTH) & unknown
+    # each hole's depth over its deep cells only; ndimage.maximum argsorts every cell of
+    # the grid (0.4 s on 1.44 M cells, against 0.01 s)
+    depth = np.zeros(count + 1, dtype=distance.dtype)
+    np.maximum.at(depth, labels[deep_cells], distance[deep_cells])
+    candidates = np.flatnonzero(depth)
     if candidates.size:
-        depth = ndimage.maximum(distance, labels, candidates)
         size = np.bincount(labels.ravel(), minlength=count + 1)[candidates]
-        compact = size <= _AMG_MAX_SPREAD * np.asarray(depth) ** 2
+        compact = size <= _AMG_MAX_SPREAD * depth[candidates].astype(np.int64) ** 2
         deep_hole[candidates] = (size <= _AMG_SMALL_HOLE) | compact
     padded = np.pad(anchors, 1)
     beside = padded[:-2, 1:-1] | padded[2:, 1:-1] | padded[1:-1, :-2] | padded[1:-1, 2:]
