@@ -319,7 +319,8 @@ def reconstruct(
         for index in range(len(cameras)):
             cameras[index] = reseated(cameras[index], surface, settings.depth_noise_factor)
     walls_s = time.perf_counter() - started
-    result = _reconstruct(replace(scan, cameras=cameras), settings, site, exclude, calibration)
+    result = _reconstruct(scan, settings, site, exclude, calibration, clouds=cameras)
+    del cameras
     result.timings_s = {"walls": walls_s, **result.timings_s}
     result.points["raw"] = sum(len(c.points) for c in scan.cameras)
     result.points["wall"] = dropped
@@ -347,12 +348,19 @@ def _reconstruct(
     exclude: Sequence[tuple[float, float, float]],
     calibration: CalibrationConfig | None,
     residuals: bool = True,
+    clouds: list[CameraCloud] | None = None,
 ) -> Reconstruction:
     """`reconstruct` on clouds that hold no wall; without the cameras' registration residuals
-    if not `residuals` (a bin's first pass: only its heights are read)."""
+    if not `residuals` (a bin's first pass: only its heights are read). `clouds`, one per
+    camera of `scan` in its order, are fused in place of the scan's own (a bin's second pass:
+    its clouds without their wall points) and the list is emptied once they are: the fused
+    cloud holds their points, and the clouds would otherwise live through the clustering's
+    peak (8 full-resolution cameras: 66 MB)."""
     clock = _Clock()
     grid = Grid.over(site.region, settings.grid_step_m)
-    fused = fuse_and_crop(scan.cameras, site, grid)
+    fused = fuse_and_crop(scan.cameras if clouds is None else clouds, site, grid)
+    if clouds is not None:
+        clouds.clear()
     if exclude:
         fused = _excluding(fused, exclude)
     clock.lap("fuse_crop")
