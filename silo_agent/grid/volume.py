@@ -213,6 +213,7 @@ LEVEL_CONE_SIGMAS = 3.0  # a fitted cone's slope must stand this many sigmas cle
 LEVEL_CONE_MIN_SHARE = 0.7  # ... on a disc of which this share holds measured grain
 LEVEL_CONE_MAX_TILT = 0.5  # ... and fall all round: a one-sided tilt under half the slope
 LEVEL_CONE_RADIUS_M = 1.5  # with a noise model, a cone's tip is fitted this far round it
+LEVEL_CONE_MAX_RADIUS_M = 6.0  # ... or on discs twice, four times as wide while they agree
 LEVEL_CELL_GAP_M = 0.05  # ... a disc's share counting cells this close between measured ones
 LEVEL_MIN_KNOWN_SHARE = 0.5  # read so if this share of the grain is known to LEVEL_SIGMA_M
 LEVEL_GRID_M = 0.05  # on a finer grid levels are read on blocks of about this size
@@ -270,18 +271,19 @@ def level_surface(
 
 def _cone_fit(
     design: np.ndarray, weight: np.ndarray, heights: np.ndarray
-) -> tuple[np.ndarray, float] | None:
+) -> tuple[np.ndarray, float, float] | None:
     """Weighted least squares of `heights` on `design` (its second column the distance from the
     tip, `weight` each cell's inverse variance): the coefficients, and how steep the fitted
     slope must be to stand clear of flat (LEVEL_CONE_MIN_SLOPE, and LEVEL_CONE_SIGMAS of its
-    own noise); None if the fit is singular."""
+    own noise), and the sigma of the tip (the first coefficient); None if the fit is
+    singular."""
     try:
         covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
     except np.linalg.LinAlgError:
         return None
     coefficients = covariance @ (design.T @ (weight * heights))
     clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
-    return coefficients, clear
+    return coefficients, clear, float(np.sqrt(covariance[0, 0]))
 
 
 def _cone_or_mean(
@@ -293,37 +295,71 @@ def _cone_or_mean(
     mean: float,
     rises: bool,
 ) -> float:
-    """The height at cell `at` of a cone h = a + b * distance fitted to the `cells` within
-    LEVEL_CONE_RADIUS_M (weighted by their information), if it is one: its slope rises away
-    from `at` (a crater's bottom, `rises`) or falls (a heap's apex) by more than
-    LEVEL_CONE_SIGMAS of its own noise and LEVEL_CONE_MIN_SLOPE, on a disc mostly measured
-    (not cut by the wall band or the edge of what was seen), and its tip lies beyond `mean`,
-    the surface averaged there (averaging rounds a tip off, never sharpens it); else `mean`."""
-    rows, cols, (row, col) = _window(grid, at, LEVEL_CONE_RADIUS_M)
+    """The height at cell `at` of a cone h = a + b * distance fitted to the `cells` round it
+    (weighted by their information), if it is one: its slope rises away from `at` (a
+    crater's bottom, `rises`) or falls (a heap's apex) by more than LEVEL_CONE_SIGMAS of its
+    own noise and LEVEL_CONE_MIN_SLOPE, on a disc mostly measured (not cut by the wall band
+    or the edge of what was seen), and its tip lies beyond `mean`, the surface averaged there
+    (averaging rounds a tip off, never sharpens it); else `mean`.
+
+    The disc is LEVEL_CONE_RADIUS_M, widened (doubling) while the wider cone is still one
+    and its tip agrees with every narrower tip within LEVEL_AGREE_SIGMAS of that tip's own
+    noise (Lepski's rule, as `level_surface`'s): a tip is an extrapolation, and from 10-13 m
+    (an 18 m bin's apex seen from the eaves) a 1.5 m disc's tip is known to ~6 cm, a 6 m
+    disc's to ~2 cm; where the flank stops being a cone the wider tip departs and the rule
+    stops."""
+    tip = None
+    lower, upper = -np.inf, np.inf  # every narrower tip's band, intersected
+    radius = LEVEL_CONE_RADIUS_M
+    while radius <= LEVEL_CONE_MAX_RADIUS_M:
+        fitted = _cone_tip(grid, heights, cells, information, at, radius, rises)
+        if fitted is None or not lower <= fitted[0] <= upper:
+            break
+        tip = fitted[0]
+        lower = max(lower, tip - LEVEL_AGREE_SIGMAS * fitted[1])
+        upper = min(upper, tip + LEVEL_AGREE_SIGMAS * fitted[1])
+        radius *= 2
+    if tip is None:
+        return mean
+    beyond = tip <= mean if rises else tip >= mean
+    return float(tip) if beyond else mean
+
+
+def _cone_tip(
+    grid: Grid,
+    heights: np.ndarray,
+    cells: np.ndarray,
+    information: np.ndarray,
+    at: tuple[int, int],
+    radius_m: float,
+    rises: bool,
+) -> tuple[float, float] | None:
+    """The tip at cell `at` of the cone fitted to the `cells` within `radius_m`, and its
+    sigma, if it is a cone (`_cone_or_mean`'s tests); else None."""
+    rows, cols, (row, col) = _window(grid, at, radius_m)
     xs, ys = _centres(grid, rows, cols)
     heights, cells, information = heights[rows, cols], cells[rows, cols], information[rows, cols]
     distance = np.hypot(xs - xs[row, col], ys - ys[row, col])
-    disc = (grid.inside[rows, cols] > 0) & (distance <= LEVEL_CONE_RADIUS_M)
+    disc = (grid.inside[rows, cols] > 0) & (distance <= radius_m)
     near = cells & disc & (information > 0)
     # on a fine grid at long range a pixel covers several cells: cells between measured ones
     # count as measured for the share (not for the fit)
     gap = max(0, round(LEVEL_CELL_GAP_M / grid.step) - 1)
     covered = ndimage.maximum_filter(cells, size=2 * gap + 1) if gap else cells
     if near.sum() < 3 or (covered & disc).sum() < LEVEL_CONE_MIN_SHARE * disc.sum():
-        return mean
+        return None
     weight = information[near] * grid.cell_area  # inverse variance of each cell
     bearing = np.arctan2(ys - ys[row, col], xs - xs[row, col])[near]
     d = distance[near]
     design = np.column_stack([np.ones(len(d)), d, d * np.cos(bearing), d * np.sin(bearing)])
     fit = _cone_fit(design, weight, heights[near])
     if fit is None:
-        return mean
-    (tip, slope, tilt_x, tilt_y), clear = fit
+        return None
+    (tip, slope, tilt_x, tilt_y), clear, tip_sigma = fit
     # a cone falls (or rises) alike all round: a rim or a slope falls on one side only
     round_ = np.hypot(tilt_x, tilt_y) < LEVEL_CONE_MAX_TILT * abs(slope)
     cone = (slope > clear if rises else slope < -clear) and round_
-    beyond = tip <= mean if rises else tip >= mean
-    return float(tip) if cone and beyond else mean
+    return (float(tip), tip_sigma) if cone else None
 
 
 def _fitted_peak(
@@ -472,7 +508,7 @@ def _to_wall(
     fit = _cone_fit(design, weight, heights[near])
     if fit is None:
         return value
-    (tip, slope), clear = fit
+    (tip, slope), clear, _ = fit
     if rises and slope > clear:
         return min(value, float(tip))
     if not rises and slope < -clear:
