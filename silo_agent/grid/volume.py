@@ -217,6 +217,8 @@ LEVEL_CONE_MAX_RADIUS_M = 6.0  # ... or on discs twice, four times as wide while
 LEVEL_CELL_GAP_M = 0.05  # ... a disc's share counting cells this close between measured ones
 LEVEL_MIN_KNOWN_SHARE = 0.5  # read so if this share of the grain is known to LEVEL_SIGMA_M
 LEVEL_GRID_M = 0.05  # on a finer grid levels are read on blocks of about this size
+LEVEL_CONTACT_SIGMA_M = 0.025  # grain meeting bare steel: its height there read if known to this
+LEVEL_CONTACT_ITERATIONS = 10  # ... the cells its fitted plane stands over, settled this often
 
 
 def _kernel_share(sigma_cells: float) -> float:
@@ -387,9 +389,11 @@ def grain_levels(
     off_wall: np.ndarray,
     information: np.ndarray | None = None,
     wall_distance: np.ndarray | None = None,
+    bottom: np.ndarray | None = None,
 ) -> Levels:
     """A bin's min, mean and max grain level, over the cells where grain stands (bare floor or
-    hopper steel is not grain).
+    hopper steel is not grain); `bottom`, the bin's steel under each cell, lets a highest point
+    where the grain meets bare steel be read on that contact (`_to_contact`).
 
     At 8-10 m one cell's height is off by centimetres; the highest of thousands of cells is
     then the highest noise, not the highest grain, and a surface smoothed enough to hide the
@@ -413,8 +417,21 @@ def grain_levels(
         level_grid, level_heights, level_measured, level_information, level_wall = _level_grid(
             grid, heights, measured, information, wall_distance
         )
+        steel = None
+        if bottom is not None:
+            # every measured cell off the wall, grain or bare steel, on the same blocks
+            _, all_heights, all_measured, all_information, _ = _level_grid(
+                grid, heights, region & observed & off_wall, information, None
+            )
+            factor = max(1, round(LEVEL_GRID_M / grid.step))
+            steel = _Steel(
+                all_heights,
+                all_measured,
+                all_information,
+                block_sums(bottom, factor) / (factor * factor) if factor > 1 else bottom,
+            )
         levels = _trusted_levels(
-            level_grid, level_heights, level_measured, level_information, mean, level_wall
+            level_grid, level_heights, level_measured, level_information, mean, level_wall, steel
         )
         if levels is not None:
             return levels
@@ -436,10 +453,12 @@ def _trusted_levels(
     information: np.ndarray,
     mean: float,
     wall_distance: np.ndarray | None,
+    steel: _Steel | None = None,
 ) -> Levels | None:
     """`grain_levels` with a noise model: the extremes of `level_surface` over the cells where
     it is known to LEVEL_SIGMA_M, each read as a cone if one is there (`_cone_or_mean`) or
-    carried on to the wall if it lies by the wall band on a slope down to it (`_to_wall`);
+    carried on to the wall if it lies by the wall band on a slope down to it (`_to_wall`),
+    the highest on to where the grain meets bare steel if it lies by some (`_to_contact`);
     None if less than LEVEL_MIN_KNOWN_SHARE of the measured grain is known that well."""
     surface, _sigma, known = level_surface(grid, heights, measured, information)
     trusted = known & np.isfinite(surface)
@@ -463,7 +482,79 @@ def _trusted_levels(
         highest = _to_wall(
             grid, heights, measured, information, top_at, highest, False, wall_distance
         )
+    if steel is not None:
+        highest = _to_contact(grid, steel, measured, top_at, highest)
     return Levels(lowest, mean, highest)
+
+
+@dataclass(frozen=True)
+class _Steel:
+    """On the grid levels are read on: every measured cell off the wall band, grain or bare
+    steel (heights, mask, information), and the bin's steel (floor or hopper) under each."""
+
+    heights: np.ndarray
+    measured: np.ndarray
+    information: np.ndarray
+    bottom: np.ndarray
+
+
+def _to_contact(
+    grid: Grid, steel: _Steel, grain: np.ndarray, at: tuple[int, int], value: float
+) -> float:
+    """The highest grain of a hopper drawn down into its cone lies where the grain meets the
+    bare steel rising above it. Read there it reads low: the grain's edge ends short of the
+    contact (where it is thinner than noise), and averaged there only the grain side counts
+    (8-12 cm at 1280x720). So if the measured cells within LEVEL_CONE_RADIUS_M of `at` hold
+    bare steel (not `grain`), a plane h = a + p n + q t is fitted (information-weighted) to those
+    it stands above the steel on (the grain's cells to start, settled a few times: cells are
+    not picked by their own noise), n running across the steel's contour lines (the steel's
+    height over its slope: from the axis of a conical hopper, so a crater's cone is a plane
+    in it) and t along them; where it meets the steel, if the steel rises faster than the
+    grain and that height is known to LEVEL_CONTACT_SIGMA_M (the lever to the contact doubles
+    the plane's noise), is the level if above `value`."""
+    rows, cols, (row, col) = _window(grid, at, LEVEL_CONE_RADIUS_M)
+    bottom = steel.bottom[rows, cols]
+    if min(bottom.shape) < 2:
+        return value
+    slope_y, slope_x = (float(g[row, col]) for g in np.gradient(bottom, grid.step))
+    rise = float(np.hypot(slope_x, slope_y))
+    if not rise > LEVEL_CONE_MIN_SLOPE:  # a flat floor: no contour to cross
+        return value
+    xs, ys = _centres(grid, rows, cols)
+    heights, information = steel.heights[rows, cols], steel.information[rows, cols]
+    dx, dy = xs - xs[row, col], ys - ys[row, col]
+    disc = steel.measured[rows, cols] & (np.hypot(dx, dy) <= LEVEL_CONE_RADIUS_M)
+    disc &= information > 0
+    grain = grain[rows, cols] & disc
+    if not np.any(disc & ~grain):
+        return value  # grain all round: no contact here
+    across = (bottom - bottom[row, col]) / rise
+    along = (dy * slope_x - dx * slope_y) / rise
+    on = grain
+    for _ in range(LEVEL_CONTACT_ITERATIONS):
+        if on.sum() < 3:
+            return value
+        design = np.column_stack([np.ones(int(on.sum())), across[on], along[on]])
+        weight = information[on] * grid.cell_area
+        try:
+            covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
+        except np.linalg.LinAlgError:
+            return value
+        a, p, q = covariance @ (design.T @ (weight * heights[on]))
+        above = disc & (a + p * across + q * along > bottom)
+        if np.array_equal(above, on):
+            break
+        on = above
+    if not p < rise:
+        return value  # the grain rises as fast as the steel: they do not meet outward
+    reach = (a - bottom[row, col]) / (rise - p)  # across, from `at` to the contact
+    if abs(reach) > LEVEL_CONE_RADIUS_M:
+        return value
+    lever = rise / (rise - p)
+    variance = covariance[0, 0] + reach * reach * covariance[1, 1] + 2 * reach * covariance[0, 1]
+    if not lever * np.sqrt(max(variance, 0.0)) <= LEVEL_CONTACT_SIGMA_M:
+        return value
+    return max(value, float(a + p * reach))
 
 
 def _to_wall(

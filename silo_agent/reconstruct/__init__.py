@@ -573,7 +573,14 @@ def _result(
             if bin_cells is not None and counted is not None:
                 wall = bin_cells.wall_distance
                 surface = grain_levels(
-                    grid, heights, counted, observed, wall > LEVEL_WALL_BAND_M, information, wall
+                    grid,
+                    heights,
+                    counted,
+                    observed,
+                    wall > LEVEL_WALL_BAND_M,
+                    information,
+                    wall,
+                    bin_cells.bottom,
                 )
             else:
                 surface = surface_levels(grid, heights)
