@@ -1,13 +1,20 @@
 """A bin's highest grain read as a cone's tip (grid/volume.py): the tip is an extrapolation, so
 where the cells round the apex are known only roughly (an 18 m bin's apex seen from 10-13 m)
-the fit is widened while the wider cone agrees; where the flank ends it is not."""
+the fit is widened while the wider cone agrees; where the flank ends it is not. And the level
+a bin's points are reseated on (reconstruct/walls.py): averaged where a cell holds one noise
+blob (trust.blob_scale), the cell's own mean where it holds several."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from silo_agent.base.d455 import CORRELATION_PX
 from silo_agent.grid.grid import Grid
-from silo_agent.grid.volume import LEVEL_CONE_RADIUS_M, _cone_or_mean, _cone_tip
+from silo_agent.grid.volume import LEVEL_CONE_RADIUS_M, LEVEL_SCALES_M, _cone_or_mean, _cone_tip
+from silo_agent.reconstruct.fuse import CellMoments
+from silo_agent.reconstruct.trust import blob_scale
+from silo_agent.reconstruct.walls import reseat_level
+from silo_agent.scan import CameraCloud
 
 STEP = 0.05
 SLOPE = 0.49  # wheat's angle of repose
@@ -50,3 +57,36 @@ def test_the_fit_stops_widening_where_the_heap_ends() -> None:
         at = (grid.shape[0] // 2, grid.shape[1] // 2)
         tip = _cone_or_mean(grid, heights, cells, information, at, apex - 1.0, False)
         assert abs(tip - apex) < 0.01
+
+
+def test_a_cameras_noise_blob_on_the_ground_grows_with_range() -> None:
+    # a camera 10 m straight above a floor: a pixel covers (10 / f)^2, a blob 4 pixels
+    focal = 400.0
+    grid = Grid((-1.0, -1.0), 0.1, (20, 20), np.ones((20, 20)))
+    xs, ys = grid.centres()
+    floor = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(np.float32)
+    looking_down = np.diag([1.0, -1.0, -1.0, 1.0])  # camera -> silo
+    looking_down[2, 3] = 10.0
+    seen = np.column_stack([floor[:, 0], -floor[:, 1], np.full(xs.size, 10.0, np.float32)])
+    camera = CameraCloud("down", seen, looking_down, {"fx": focal})
+    one_each = np.arange(xs.size)
+    moments = CellMoments.of(floor, np.zeros(xs.size, dtype=np.int64), one_each, xs.size, 1)
+    blob = blob_scale(grid, moments, [camera])
+    reach = np.sqrt(xs**2 + ys**2 + 100.0)
+    expected = CORRELATION_PX * np.sqrt(np.square(reach / focal) * reach / 10.0)
+    assert np.allclose(blob, expected, rtol=1e-6)
+
+
+def test_points_seen_in_wide_blobs_are_reseated_on_the_averaged_surface() -> None:
+    # flat grain at 1 m; the left half seen in blobs wider than a level's finest scale, its
+    # cells alternating 0.3 m high and low (one blob each); the right half in small blobs
+    grid = Grid((0.0, 0.0), 0.1, (40, 40), np.ones((40, 40)))
+    heights = np.full(grid.shape, 1.0)
+    heights[:, :20] += np.where(np.indices((40, 20)).sum(axis=0) % 2 == 0, 0.3, -0.3)
+    heights[:, 20:] += 0.01
+    observed = np.ones(grid.shape, dtype=bool)
+    information = np.full(grid.shape, 1e4)
+    blob = np.where(np.arange(40) < 20, 2.0 * LEVEL_SCALES_M[0], 0.5 * LEVEL_SCALES_M[0])
+    level = reseat_level(grid, heights, observed, information, np.broadcast_to(blob, (40, 40)))
+    assert np.all(np.abs(level[5:-5, 5:15] - 1.0) < 0.05)  # averaged over many blobs
+    assert np.array_equal(level[:, 20:], heights[:, 20:])  # the cell's own mean

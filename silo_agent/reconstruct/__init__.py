@@ -45,10 +45,11 @@ from silo_agent.reconstruct.cells import (
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.reconstruct.trust import cell_information
+from silo_agent.reconstruct.trust import blob_scale, cell_information
 from silo_agent.reconstruct.walls import (
     FirstSurface,
     WallCrossing,
+    reseat_level,
     reseated,
     wall_free,
     wall_rays,
@@ -91,6 +92,8 @@ class Reconstruction:
     registration: dict[str, PairResidual] = field(default_factory=dict)  # reconstruct/residual
     capacity_m3: float | None = None  # a bin's: bottom to eave over the region
     reference_z: float | None = None  # a bin's headspace reference: eave or roof peak
+    # a bin's first pass only: the level its points are reseated on (walls.reseat_level)
+    reseat_level: np.ndarray | None = field(default=None, repr=False)
 
     def bin_figures(self) -> dict[str, float | None]:
         """Fill ratio and headspace (to the highest grain, to the mean surface) of a bin."""
@@ -321,7 +324,9 @@ def reconstruct(
         first = rough.heightmap.heights.astype(np.float64)
         cameras, dropped = wall_free(scan.cameras, crossings, site.bin, first)
         del crossings
-        surface = FirstSurface.of(grid, first)  # once: it is the same for every camera
+        # once: it is the same for every camera
+        surface = FirstSurface.of(grid, first, rough.reseat_level)
+        del rough
         for index in range(len(cameras)):
             cameras[index] = reseated(cameras[index], surface, settings.depth_noise_factor)
     walls_s = time.perf_counter() - started
@@ -379,7 +384,8 @@ def _reconstruct(
     clouds: list[CameraCloud] | None = None,
 ) -> Reconstruction:
     """`reconstruct` on clouds that hold no wall; without the cameras' registration residuals
-    if not `residuals` (a bin's first pass: only its heights are read). `clouds`, one per
+    if not `residuals` (a bin's first pass: only its heights and the level its points are
+    reseated on are read). `clouds`, one per
     camera of `scan` in its order, are fused in place of the scan's own (a bin's second pass:
     its clouds without their wall points) and the list is emptied once they are: the fused
     cloud holds their points, and the clouds would otherwise live through the clustering's
@@ -427,9 +433,11 @@ def _reconstruct(
         clock.lap("voxel_downsample")
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
-    information = None  # how well each cell is known, for a bin's levels: from the moments
+    information = blob = None  # how well each cell is known, for a bin's levels: from the moments
     if site.bin is not None:
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
+        if not residuals:  # a bin's first pass: how wide its cameras' noise blobs are
+            blob = blob_scale(grid, moments, scan.cameras)
     del moments
     segments = height_segments(points, camera, cell, grid, totals)
     counts = _PointCounts(raw_count, in_region, len(points))
@@ -512,6 +520,8 @@ def _reconstruct(
     )
     result.points["after_downsampling"] = counts.after_downsampling
     result.registration = registration
+    if information is not None and blob is not None:
+        result.reseat_level = reseat_level(grid, heights, observed, information, blob)
     return result
 
 

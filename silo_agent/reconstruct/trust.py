@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from silo_agent.base.d455 import CORRELATED_SHARE, blob_area_px, depth_rms_m
+from silo_agent.base.d455 import CORRELATED_SHARE, CORRELATION_PX, blob_area_px, depth_rms_m
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.volume import LEVEL_GRID_M
 from silo_agent.reconstruct.fuse import CellMoments
@@ -81,3 +81,36 @@ def cell_information(
             contribution = np.where(usable, spread[block], 0.0)
         information += np.bincount(cell, contribution, moments.n_cells)
     return information.reshape(grid.shape)
+
+
+def blob_scale(grid: Grid, moments: CellMoments, cameras: list[CameraCloud]) -> np.ndarray:
+    """Per cell, how wide (Gaussian sigma, metres) the correlated noise blobs of the cameras
+    that saw it are on the ground: CORRELATION_PX pixels' footprint, RMS over the cell's
+    points; 0 where no camera saw it. The points of one blob share its error: a cell narrower
+    than its blob holds one blob's points, and their mean is that blob's, not the surface's."""
+    step, (x0, y0) = grid.step, grid.origin
+    cols = grid.shape[1]
+    squares = np.zeros(moments.n_cells)
+    points = np.zeros(moments.n_cells)
+    for index, cloud in enumerate(cameras):
+        pairs = np.flatnonzero(moments.camera == index)
+        if len(pairs) == 0:
+            continue
+        cell = moments.cell[pairs]
+        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
+        ox, oy, oz = cloud.extrinsic[:3, 3]
+        row, col = np.divmod(cell, cols)
+        across_x = x0 + (col + 0.5) * step - ox
+        across_y = y0 + (row + 0.5) * step - oy
+        with np.errstate(invalid="ignore", divide="ignore"):
+            drop = oz - moments.sum_z[pairs] / moments.count[pairs]
+        reach = np.sqrt(across_x**2 + across_y**2 + drop**2)
+        usable = np.isfinite(drop) & (drop > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pixel_area = np.square(reach / focal) * reach / drop  # a pixel's ground footprint
+        count = np.where(usable, moments.count[pairs], 0.0)
+        squares += np.bincount(cell, count * np.where(usable, pixel_area, 0.0), moments.n_cells)
+        points += np.bincount(cell, count, moments.n_cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = CORRELATION_PX * np.sqrt(squares / points)
+    return np.where(points > 0, scale, 0.0).reshape(grid.shape)
