@@ -1,4 +1,5 @@
-"""The agent keeps freed array memory for the next scan (silo_agent/base/heap.py)."""
+"""The agent keeps freed array memory for the next scan (silo_agent/base/heap.py), runs numpy
+without huge-page advice and BLAS on one thread (silo_agent/cli `_dispatch`)."""
 
 from __future__ import annotations
 
@@ -63,3 +64,34 @@ def _advised(tmp_path, environment: dict[str, str]) -> str:
 def test_commands_run_numpy_without_huge_page_advice_unless_asked(tmp_path) -> None:
     assert _advised(tmp_path, {}) == "False"
     assert _advised(tmp_path, {"NUMPY_MADVISE_HUGEPAGE": "1"}) == "True"
+
+
+# How many threads OpenBLAS runs, after the command line ran a command.
+BLAS_THREADS = """
+import sys
+from silo_agent.cli import main
+main(["process", sys.argv[1]])  # a missing directory: refused, after the command's set-up
+import numpy
+from threadpoolctl import threadpool_info
+print(*[pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"])
+"""
+
+
+def _blas_threads(tmp_path, environment: dict[str, str]) -> set[str]:
+    """The thread counts of the BLAS libraries loaded (numpy's and scipy's)."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"} | environment
+    out = subprocess.run(
+        [sys.executable, "-c", BLAS_THREADS, str(tmp_path / "missing")],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    )
+    return set(out.stdout.split())
+
+
+def test_commands_run_blas_on_one_thread_unless_asked(tmp_path) -> None:
+    assert _blas_threads(tmp_path, {}) == {"1"}
+    assert _blas_threads(tmp_path, {"OPENBLAS_NUM_THREADS": "2"}) == {"2"}

@@ -291,6 +291,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     # pydantic scans every installed package for plugins at its first model (~0.02 s, paid by
     # every one-off `process`); the agent uses none. An explicit setting, even empty, wins.
     os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")
+    # OpenBLAS starts a thread per core whose workers spin between calls; the engine's BLAS
+    # calls are small (3x3 and 4x4 fits, N x 3 by 3 x 3 products), so the spinning is all they
+    # add: a 12 m silo's `process` at 1 cm, unpinned on 2 cores, 5.5-5.7 s of user CPU against
+    # 4.0-4.4 s with one thread, and no faster. Set before numpy is imported.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from silo_agent.base.heap import keep_freed_memory, small_pages
 
     small_pages()  # numpy is not imported yet (the parser needs none of it)
