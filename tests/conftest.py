@@ -8,6 +8,13 @@ out."""
 
 from __future__ import annotations
 
+import os
+
+# as every command runs (silo_agent/cli `_dispatch`), before numpy is imported: a scan replayed
+# in this process must compute what the daemon this suite starts computed, to the bit (BLAS on
+# two threads rounds a refine's least squares differently)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 from pathlib import Path
 
 import numpy as np
