@@ -16,6 +16,9 @@ is known to ~1 cm; at 10 m, from the far side of a 10 m bin, a 1 m disc only to 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
+
 import numpy as np
 
 from silo_agent.base.d455 import CORRELATED_SHARE, CORRELATION_PX, blob_area_px, depth_rms_m
@@ -23,6 +26,48 @@ from silo_agent.grid.grid import Grid
 from silo_agent.grid.volume import LEVEL_GRID_M
 from silo_agent.reconstruct.fuse import CellMoments
 from silo_agent.scan import CameraCloud
+
+
+@dataclass(frozen=True)
+class _Sightlines:
+    """One camera's (cell, camera) pairs and how it sees each cell: from where its points'
+    mean height in the cell lies (a few tenths of a metre of noise against a drop of 5-10 m
+    barely moves these)."""
+
+    cloud: CameraCloud
+    pairs: np.ndarray  # indices into the moments' pairs
+    cell: np.ndarray  # flat cell index
+    row: np.ndarray
+    col: np.ndarray
+    focal: float  # pixels
+    across_x: np.ndarray  # from the camera to the cell's centre, horizontally (m)
+    across_y: np.ndarray
+    drop: np.ndarray  # from the camera down to the cell's mean height (m; NaN if none)
+    reach: np.ndarray  # the distance from the camera to there (m)
+
+
+def _sightlines(
+    grid: Grid, moments: CellMoments, cameras: list[CameraCloud]
+) -> Iterator[_Sightlines]:
+    """Each camera's `_Sightlines` that has points, one camera at a time (its pairs only,
+    component by component): the pairs of a silo at 1 cm run to millions, and (pairs, 3)
+    float64 temporaries to hundreds of MB."""
+    step, (x0, y0) = grid.step, grid.origin
+    cols = grid.shape[1]
+    for index, cloud in enumerate(cameras):
+        pairs = np.flatnonzero(moments.camera == index)
+        if len(pairs) == 0:
+            continue
+        cell = moments.cell[pairs]
+        ox, oy, oz = cloud.extrinsic[:3, 3]
+        row, col = np.divmod(cell, cols)
+        across_x = x0 + (col + 0.5) * step - ox
+        across_y = y0 + (row + 0.5) * step - oy
+        with np.errstate(invalid="ignore", divide="ignore"):
+            drop = oz - moments.sum_z[pairs] / moments.count[pairs]
+        reach = np.sqrt(across_x**2 + across_y**2 + drop**2)
+        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
+        yield _Sightlines(cloud, pairs, cell, row, col, focal, across_x, across_y, drop, reach)
 
 
 def cell_information(
@@ -37,30 +82,16 @@ def cell_information(
     (levels are read on blocks of about that size) a point informs its pixel's footprint:
     at 1 cm a pixel seen from 10 m covers several cells, most of which hold no point, so the
     coverage is counted per block and the block's information shared by its measured cells."""
-    step, (x0, y0) = grid.step, grid.origin
-    cols = grid.shape[1]
     share = CORRELATED_SHARE * blob_area_px() + (1.0 - CORRELATED_SHARE)
     information = np.zeros(moments.n_cells)
-    factor = max(1, round(LEVEL_GRID_M / step))  # levels read on blocks of factor^2 cells
-    block_cols = -(-cols // factor)
-    # one camera at a time (its pairs only, component by component): the pairs of a silo at
-    # 1 cm run to millions, and (pairs, 3) float64 temporaries to hundreds of MB
-    for index, cloud in enumerate(cameras):
-        pairs = np.flatnonzero(moments.camera == index)
-        if len(pairs) == 0:
-            continue
-        cell = moments.cell[pairs]
-        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
-        (ox, oy, oz), (ax, ay, az) = cloud.extrinsic[:3, 3], cloud.extrinsic[:3, 2]
-        row, col = np.divmod(cell, cols)
-        across_x = x0 + (col + 0.5) * step - ox
-        across_y = y0 + (row + 0.5) * step - oy
-        with np.errstate(invalid="ignore", divide="ignore"):
-            drop = oz - moments.sum_z[pairs] / moments.count[pairs]
-        depth = across_x * ax + across_y * ay - drop * az
-        reach = np.sqrt(across_x**2 + across_y**2 + drop**2)
-        usable = np.isfinite(drop) & (depth > 0) & (drop > 0)
-        depth, reach, drop = (np.where(usable, a, 1.0) for a in (depth, reach, drop))
+    factor = max(1, round(LEVEL_GRID_M / grid.step))  # levels read on blocks of factor^2 cells
+    block_cols = -(-grid.shape[1] // factor)
+    for seen in _sightlines(grid, moments, cameras):
+        pairs, cell, row, col, focal = seen.pairs, seen.cell, seen.row, seen.col, seen.focal
+        ax, ay, az = seen.cloud.extrinsic[:3, 2]
+        depth = seen.across_x * ax + seen.across_y * ay - seen.drop * az
+        usable = np.isfinite(seen.drop) & (depth > 0) & (seen.drop > 0)
+        depth, reach, drop = (np.where(usable, a, 1.0) for a in (depth, seen.reach, seen.drop))
         rms_v = depth_rms_m(depth, focal, noise_factor) * drop / depth  # vertical, per pixel
         pixel_area = np.square(reach / focal) * reach / drop  # a pixel's footprint on the ground
         variance_area = np.square(rms_v) * pixel_area * share
@@ -88,27 +119,14 @@ def blob_scale(grid: Grid, moments: CellMoments, cameras: list[CameraCloud]) -> 
     that saw it are on the ground: CORRELATION_PX pixels' footprint, RMS over the cell's
     points; 0 where no camera saw it. The points of one blob share its error: a cell narrower
     than its blob holds one blob's points, and their mean is that blob's, not the surface's."""
-    step, (x0, y0) = grid.step, grid.origin
-    cols = grid.shape[1]
     squares = np.zeros(moments.n_cells)
     points = np.zeros(moments.n_cells)
-    for index, cloud in enumerate(cameras):
-        pairs = np.flatnonzero(moments.camera == index)
-        if len(pairs) == 0:
-            continue
-        cell = moments.cell[pairs]
-        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
-        ox, oy, oz = cloud.extrinsic[:3, 3]
-        row, col = np.divmod(cell, cols)
-        across_x = x0 + (col + 0.5) * step - ox
-        across_y = y0 + (row + 0.5) * step - oy
-        with np.errstate(invalid="ignore", divide="ignore"):
-            drop = oz - moments.sum_z[pairs] / moments.count[pairs]
-        reach = np.sqrt(across_x**2 + across_y**2 + drop**2)
+    for seen in _sightlines(grid, moments, cameras):
+        cell, reach, drop = seen.cell, seen.reach, seen.drop
         usable = np.isfinite(drop) & (drop > 0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            pixel_area = np.square(reach / focal) * reach / drop  # a pixel's ground footprint
-        count = np.where(usable, moments.count[pairs], 0.0)
+            pixel_area = np.square(reach / seen.focal) * reach / drop  # its ground footprint
+        count = np.where(usable, moments.count[seen.pairs], 0.0)
         squares += np.bincount(cell, count * np.where(usable, pixel_area, 0.0), moments.n_cells)
         points += np.bincount(cell, count, moments.n_cells)
     with np.errstate(invalid="ignore", divide="ignore"):
