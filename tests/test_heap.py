@@ -37,61 +37,43 @@ def test_freed_arrays_are_reused_without_page_faults() -> None:
         assert _faults("keep", floats) < 5
 
 
-# Whether numpy advises huge pages on its arrays, after the command line ran a command.
-HUGE_PAGES = """
+# What numpy prints of itself after the command line ran a command (a missing directory:
+# refused, after the command's set-up), in a fresh process.
+AFTER_A_COMMAND = """
 import sys
 from silo_agent.cli import main
-main(["process", sys.argv[1]])  # a missing directory: refused, after the command's set-up
-import numpy
-print(numpy._core.multiarray._get_madvise_hugepage())
-"""
-
-
-def _advised(tmp_path, environment: dict[str, str]) -> str:
-    import os
-
-    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"} | environment
-    out = subprocess.run(
-        [sys.executable, "-c", HUGE_PAGES, str(tmp_path / "missing")],
-        capture_output=True,
-        text=True,
-        check=True,
-        env=env,
-    )
-    return out.stdout.strip()
-
-
-def test_commands_run_numpy_without_huge_page_advice_unless_asked(tmp_path) -> None:
-    assert _advised(tmp_path, {}) == "False"
-    assert _advised(tmp_path, {"NUMPY_MADVISE_HUGEPAGE": "1"}) == "True"
-
-
-# How many threads OpenBLAS runs, after the command line ran a command.
-BLAS_THREADS = """
-import sys
-from silo_agent.cli import main
-main(["process", sys.argv[1]])  # a missing directory: refused, after the command's set-up
+main(["process", sys.argv[1]])
 import numpy
 from threadpoolctl import threadpool_info
+print(numpy._core.multiarray._get_madvise_hugepage())  # whether numpy advises huge pages
 print(*[pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"])
 """
 
 
-def _blas_threads(tmp_path, environment: dict[str, str]) -> set[str]:
-    """The thread counts of the BLAS libraries loaded (numpy's and scipy's)."""
+def _after_a_command(tmp_path, unset: str, environment: dict[str, str]) -> tuple[str, set[str]]:
+    """(huge-page advice, the thread counts of the BLAS libraries loaded: numpy's and scipy's)
+    with `unset` taken out of the environment and `environment` added."""
     import os
 
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"} | environment
+    env = {k: v for k, v in os.environ.items() if k != unset} | environment
     out = subprocess.run(
-        [sys.executable, "-c", BLAS_THREADS, str(tmp_path / "missing")],
+        [sys.executable, "-c", AFTER_A_COMMAND, str(tmp_path / "missing")],
         capture_output=True,
         text=True,
         check=True,
         env=env,
     )
-    return set(out.stdout.split())
+    advice, threads = out.stdout.splitlines()
+    return advice, set(threads.split())
+
+
+def test_commands_run_numpy_without_huge_page_advice_unless_asked(tmp_path) -> None:
+    unset = "NUMPY_MADVISE_HUGEPAGE"
+    assert _after_a_command(tmp_path, unset, {})[0] == "False"
+    assert _after_a_command(tmp_path, unset, {unset: "1"})[0] == "True"
 
 
 def test_commands_run_blas_on_one_thread_unless_asked(tmp_path) -> None:
-    assert _blas_threads(tmp_path, {}) == {"1"}
-    assert _blas_threads(tmp_path, {"OPENBLAS_NUM_THREADS": "2"}) == {"2"}
+    unset = "OPENBLAS_NUM_THREADS"
+    assert _after_a_command(tmp_path, unset, {})[1] == {"1"}
+    assert _after_a_command(tmp_path, unset, {unset: "2"})[1] == {"2"}
