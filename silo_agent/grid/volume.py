@@ -271,19 +271,29 @@ def level_surface(
     return surface, sigma, known
 
 
-def _cone_fit(
+def _weighted_fit(
     design: np.ndarray, weight: np.ndarray, heights: np.ndarray
-) -> tuple[np.ndarray, float, float] | None:
-    """Weighted least squares of `heights` on `design` (its second column the distance from the
-    tip, `weight` each cell's inverse variance): the coefficients, and how steep the fitted
-    slope must be to stand clear of flat (LEVEL_CONE_MIN_SLOPE, and LEVEL_CONE_SIGMAS of its
-    own noise), and the sigma of the tip (the first coefficient); None if the fit is
-    singular."""
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Weighted least squares of `heights` on `design` (`weight` each cell's inverse
+    variance): the coefficients and their covariance; None if the fit is singular."""
     try:
         covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
     except np.linalg.LinAlgError:
         return None
-    coefficients = covariance @ (design.T @ (weight * heights))
+    return covariance @ (design.T @ (weight * heights)), covariance
+
+
+def _cone_fit(
+    design: np.ndarray, weight: np.ndarray, heights: np.ndarray
+) -> tuple[np.ndarray, float, float] | None:
+    """`_weighted_fit` of a cone (`design`'s second column the distance from the tip): the
+    coefficients, and how steep the fitted slope must be to stand clear of flat
+    (LEVEL_CONE_MIN_SLOPE, and LEVEL_CONE_SIGMAS of its own noise), and the sigma of the tip
+    (the first coefficient); None if the fit is singular."""
+    fit = _weighted_fit(design, weight, heights)
+    if fit is None:
+        return None
+    coefficients, covariance = fit
     clear = max(LEVEL_CONE_MIN_SLOPE, LEVEL_CONE_SIGMAS * float(np.sqrt(covariance[1, 1])))
     return coefficients, clear, float(np.sqrt(covariance[0, 0]))
 
@@ -423,12 +433,12 @@ def grain_levels(
             _, all_heights, all_measured, all_information, _ = _level_grid(
                 grid, heights, region & observed & off_wall, information, None
             )
-            factor = max(1, round(LEVEL_GRID_M / grid.step))
+            factor = _level_factor(grid)
             steel = _Steel(
                 all_heights,
                 all_measured,
                 all_information,
-                block_sums(bottom, factor) / (factor * factor) if factor > 1 else bottom,
+                _block_mean(bottom, factor) if factor >= 2 else bottom,
             )
         levels = _trusted_levels(
             level_grid, level_heights, level_measured, level_information, mean, level_wall, steel
@@ -535,12 +545,10 @@ def _to_contact(
         if on.sum() < 3:
             return value
         design = np.column_stack([np.ones(int(on.sum())), across[on], along[on]])
-        weight = information[on] * grid.cell_area
-        try:
-            covariance = np.linalg.inv(design.T @ (design * weight[:, None]))
-        except np.linalg.LinAlgError:
+        fit = _weighted_fit(design, information[on] * grid.cell_area, heights[on])
+        if fit is None:
             return value
-        a, p, q = covariance @ (design.T @ (weight * heights[on]))
+        (a, p, q), covariance = fit
         above = disc & (a + p * across + q * along > bottom)
         if np.array_equal(above, on):
             break
@@ -638,20 +646,28 @@ def _level_grid(
     information and wall distance averaged, a block measured if a cell of it is). Levels
     average over 0.15 m and more anyway; at 1 cm a pixel seen from 10 m covers several cells,
     most cells hold no point, and ten smoothings of millions of cells cost seconds."""
-    factor = round(LEVEL_GRID_M / grid.step)
+    factor = _level_factor(grid)
     if factor < 2:
         return grid, heights, measured, information, wall_distance
 
-    def mean(values: np.ndarray) -> np.ndarray:
-        return block_sums(values, factor) / (factor * factor)
-
     weight = np.where(measured & np.isfinite(heights), information, 0.0)
-    block_weight = mean(weight)
+    block_weight = _block_mean(weight, factor)
     with np.errstate(invalid="ignore", divide="ignore"):
-        block_heights = mean(weight * np.nan_to_num(heights)) / block_weight
-    inside = mean(grid.inside)
+        block_heights = _block_mean(weight * np.nan_to_num(heights), factor) / block_weight
+    inside = _block_mean(grid.inside, factor)
     coarse = Grid(grid.origin, grid.step * factor, inside.shape, inside)
     block_wall = None
     if wall_distance is not None:
-        block_wall = mean(np.nan_to_num(wall_distance, nan=np.inf, posinf=1e9))
+        block_wall = _block_mean(np.nan_to_num(wall_distance, nan=np.inf, posinf=1e9), factor)
     return coarse, block_heights, block_weight > 0, block_weight, block_wall
+
+
+def _level_factor(grid: Grid) -> int:
+    """How many of the grid's cells a side make a block of about LEVEL_GRID_M (under 2: the
+    grid itself is read)."""
+    return round(LEVEL_GRID_M / grid.step)
+
+
+def _block_mean(values: np.ndarray, factor: int) -> np.ndarray:
+    """`values` averaged over blocks of `factor` x `factor` cells (`_level_grid`'s blocks)."""
+    return block_sums(values, factor) / (factor * factor)

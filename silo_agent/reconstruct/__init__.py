@@ -309,7 +309,7 @@ def reconstruct(
         site,
         exclude,
         calibration,
-        residuals=False,
+        first_pass=True,
     )
     # what only the wall step needs goes before the second pass (a fresh process pays for every
     # page it touches), and each camera's steadied cloud as soon as it is reseated
@@ -380,16 +380,15 @@ def _reconstruct(
     site: Site,
     exclude: Sequence[tuple[float, float, float]],
     calibration: CalibrationConfig | None,
-    residuals: bool = True,
+    first_pass: bool = False,
     clouds: list[CameraCloud] | None = None,
 ) -> Reconstruction:
-    """`reconstruct` on clouds that hold no wall; without the cameras' registration residuals
-    if not `residuals` (a bin's first pass: only its heights and the level its points are
-    reseated on are read). `clouds`, one per
-    camera of `scan` in its order, are fused in place of the scan's own (a bin's second pass:
-    its clouds without their wall points) and the list is emptied once they are: the fused
-    cloud holds their points, and the clouds would otherwise live through the clustering's
-    peak (8 full-resolution cameras: 66 MB)."""
+    """`reconstruct` on clouds that hold no wall. A bin's `first_pass` skips the cameras'
+    registration residuals and adds the level its points are reseated on (only its heights
+    and that level are read). `clouds`, one per camera of `scan` in its order, are fused in
+    place of the scan's own (a bin's second pass: its clouds without their wall points) and
+    the list is emptied once they are: the fused cloud holds their points, and the clouds
+    would otherwise live through the clustering's peak (8 full-resolution cameras: 66 MB)."""
     clock = _Clock()
     grid = Grid.over(site.region, settings.grid_step_m)
     fused = fuse_and_crop(scan.cameras if clouds is None else clouds, site, grid)
@@ -400,7 +399,7 @@ def _reconstruct(
     clock.lap("fuse_crop")
     calibration = calibration or CalibrationConfig()
     registration: dict[str, PairResidual] = {}
-    if residuals:
+    if not first_pass:
         registration = registration_residuals(
             fused,
             grid,
@@ -436,7 +435,7 @@ def _reconstruct(
     information = blob = None  # how well each cell is known, for a bin's levels: from the moments
     if site.bin is not None:
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
-        if not residuals:  # a bin's first pass: how wide its cameras' noise blobs are
+        if first_pass:  # how wide its cameras' noise blobs are, for the reseat level
             blob = blob_scale(grid, moments, scan.cameras)
     del moments
     segments = height_segments(points, camera, cell, grid, totals)

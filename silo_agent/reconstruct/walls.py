@@ -227,7 +227,8 @@ class FirstSurface:
         smooth = masked_smooth(heights, known, max(RESEAT_SCALE_M / grid.step, 1.0))
         smooth = np.where(np.isfinite(smooth), smooth, np.nanmean(smooth))
         grad_y, grad_x = np.gradient(smooth, grid.step)  # the slope from the smoothed surface
-        level = heights if level is None else level  # ... the level not: a crater's tip stays
+        # ... the level not: a crater's tip stays sharp
+        level = heights if level is None else level
         return cls(grid, np.where(np.isfinite(level), level, smooth), grad_x, grad_y)
 
 
