@@ -208,3 +208,55 @@ def test_pydantic_plugins_are_off_unless_the_environment_says(
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == repr(expected)
+
+
+def _raw_points_alive_at_the_clustering(
+    monkeypatch: pytest.MonkeyPatch, directory: Path, keep_points: bool
+) -> tuple[list[bool], dict]:
+    """`process_directory` of `directory`: whether any raw cloud's points were still alive each
+    time the clustering's segments were built (the last time: the reconstruction's peak), and
+    the summary."""
+    import weakref
+
+    import silo_agent.reconstruct as reconstruct_module
+    from silo_agent.scan import read_scan
+    from silo_agent.service import scan_path
+
+    raw: list[weakref.ref] = []
+    alive: list[bool] = []
+
+    def reading(path: Path) -> Scan:
+        scan = read_scan(path)
+        raw.extend(weakref.ref(c.points) for c in scan.cameras)
+        return scan
+
+    segments = reconstruct_module.height_segments
+
+    def watched(*args, **kwargs):
+        alive.append(any(ref() is not None for ref in raw))
+        return segments(*args, **kwargs)
+
+    monkeypatch.setattr(scan_path, "read_scan", reading)
+    monkeypatch.setattr(reconstruct_module, "height_segments", watched)
+    _scan, _result, summary = scan_path.process_directory(directory, keep_points=keep_points)
+    monkeypatch.undo()
+    return alive, {k: v for k, v in summary.to_json().items() if k != "timings_s"}
+
+
+@pytest.mark.parametrize("scene", ["cone", "bin-heap"])
+def test_process_lets_go_of_the_raw_clouds_before_the_clustering(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, scene: str
+) -> None:
+    """`process` (batch.outcome_of) reads nothing of the raw clouds after the reconstruction:
+    they go once fused (a bin: once its wall is dropped), before the peak, and the summary is
+    the same as with them kept."""
+    from silo_agent.sim.scenes import make_scene
+    from silo_agent.sim.simulate import simulate
+
+    scan = simulate(make_scene(scene), ["A1", "A5"], seed=0, resolution=(424, 240))
+    directory = write_scan(replace(scan, reconstruction={"grid_step_m": 0.05}), tmp_path / "s")
+    kept_alive, kept = _raw_points_alive_at_the_clustering(monkeypatch, directory, True)
+    let_go, released = _raw_points_alive_at_the_clustering(monkeypatch, directory, False)
+    # a bin's first pass (the wall step) clusters too, on the raw clouds: the last is the peak
+    assert kept_alive[-1] and not let_go[-1]
+    assert released == kept

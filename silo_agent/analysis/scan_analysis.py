@@ -56,6 +56,7 @@ def analyse(
     site: Site | None = None,
     previous: Sequence[Pile] = (),
     calibration: CalibrationConfig | None = None,
+    release_points: bool = False,
 ) -> ScanAnalysis:
     """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
 
@@ -76,6 +77,9 @@ def analyse(
         The previous scan's piles: a pile that stayed in place keeps its id.
     calibration : CalibrationConfig, optional
         Residual thresholds and `refine`.
+    release_points : bool
+        The scan's clouds may lose their points once the reconstruction has read them
+        (`reconstruct.released`; not with a YOLO model, whose piles read them after).
 
     Returns
     -------
@@ -102,7 +106,12 @@ def analyse(
 
         scan, notes = refine(scan, calibration, site)
     result = reconstruct(
-        scan, settings, site, exclude=[r.disc for r in robots], calibration=calibration
+        scan,
+        settings,
+        site,
+        exclude=[r.disc for r in robots],
+        calibration=calibration,
+        release_points=release_points and onnx is None,
     )
     if calibration is not None and calibration.refine:
         result.parameters["refined"] = not notes

@@ -261,6 +261,7 @@ def reconstruct(
     site: Site | None = None,
     exclude: Sequence[tuple[float, float, float]] = (),
     calibration: CalibrationConfig | None = None,
+    release_points: bool = False,
 ) -> Reconstruction:
     """Run the configured method on `scan`; `site` overrides the scan's own site.
 
@@ -281,6 +282,11 @@ def reconstruct(
         Silo-frame discs whose points are dropped.
     calibration : CalibrationConfig, optional
         Residual thresholds; default `CalibrationConfig()`.
+    release_points : bool
+        Let go of the raw clouds' points once they are read (`released`): `scan.cameras` then
+        holds the same cameras without points, for a caller that reads no more of them than
+        their serials and poses. The raw clouds otherwise live through the reconstruction's
+        peak (8 full-resolution cameras: 86 MB).
 
     Returns
     -------
@@ -295,8 +301,14 @@ def reconstruct(
         The region at this grid step is past the grid's cell limit.
     """
     site = site or scan.site
+    raw = sum(len(c.points) for c in scan.cameras)
     if site.bin is None:
-        return _reconstruct(scan, settings, site, exclude, calibration)
+        clouds = list(scan.cameras) if release_points else None
+        if release_points:
+            released(scan)
+        result = _reconstruct(scan, settings, site, exclude, calibration, clouds=clouds)
+        result.points["raw"] = raw
+        return result
     started = time.perf_counter()
     rough_settings = settings.model_copy(
         update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
@@ -314,16 +326,16 @@ def reconstruct(
     # what only the wall step needs goes before the second pass (a fresh process pays for every
     # page it touches), and each camera's steadied cloud as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
-        cameras, dropped = (
-            clear,
-            sum(len(c.points) - len(k.points) for c, k in zip(scan.cameras, clear, strict=True)),
-        )
+        cameras, dropped = clear, raw - sum(len(k.points) for k in clear)
         del crossings
     else:
         del clear
         first = rough.heightmap.heights.astype(np.float64)
         cameras, dropped = wall_free(scan.cameras, crossings, site.bin, first)
         del crossings
+    if release_points:
+        released(scan)
+    if rough.heightmap is not None:
         # once: it is the same for every camera
         surface = FirstSurface.of(grid, first, rough.reseat_level)
         del rough
@@ -333,9 +345,16 @@ def reconstruct(
     result = _reconstruct(scan, settings, site, exclude, calibration, clouds=cameras)
     del cameras
     result.timings_s = {"walls": walls_s, **result.timings_s}
-    result.points["raw"] = sum(len(c.points) for c in scan.cameras)
+    result.points["raw"] = raw
     result.points["wall"] = dropped
     return result
+
+
+def released(scan: Scan) -> None:
+    """`scan`'s cameras, in place (every holder of the scan sees it), without their points and
+    colours: serials, poses, intrinsics and counts of dropped non-measurements stay."""
+    empty = np.empty((0, 3), np.float32)
+    scan.cameras[:] = [replace(c, points=empty, colors=None) for c in scan.cameras]
 
 
 def _wall_crossings(
