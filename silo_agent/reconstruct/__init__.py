@@ -410,9 +410,9 @@ def _reconstruct(
     would otherwise live through the clustering's peak (8 full-resolution cameras: 66 MB)."""
     clock = _Clock()
     grid = Grid.over(site.region, settings.grid_step_m)
-    fused = fuse_and_crop(scan.cameras if clouds is None else clouds, site, grid)
-    if clouds is not None:
-        clouds.clear()
+    fused = fuse_and_crop(
+        scan.cameras if clouds is None else clouds, site, grid, consume=clouds is not None
+    )
     if exclude:
         fused = _excluding(fused, exclude)
     clock.lap("fuse_crop")
