@@ -449,13 +449,13 @@ def _reconstruct(
         cell = row * grid.shape[1] + col
         moments = CellMoments.of(points, camera, cell, moments.n_cells, moments.n_cams)
         clock.lap("voxel_downsample")
-    eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
-    totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     information = blob = None  # how well each cell is known, for a bin's levels: from the moments
-    if site.bin is not None:
+    if site.bin is not None:  # before the totals: its per-pair temporaries are the larger peak
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
         if first_pass:  # how wide its cameras' noise blobs are, for the reseat level
             blob = blob_scale(grid, moments, scan.cameras)
+    eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
+    totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
     segments = height_segments(points, camera, cell, grid, totals)
     counts = _PointCounts(raw_count, in_region, len(points))

@@ -191,7 +191,7 @@ def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: 
     b_start = run_starts(s_bin)
     b_n = np.add.reduceat(s_n, b_start)
     b_key = s_bin[b_start]
-    b_cell = b_key >> height_bits
+    b_cell = (b_key >> height_bits).astype(np.int32)  # the grid's cells fit (base/limits.py)
     cell_of_bins = run_starts(b_cell)
     # bins i-1 and i are adjacent heights of one cell (consecutive keys: same cell, next bin)
     adjacent = b_key[1:] - b_key[:-1] == 1
@@ -221,10 +221,16 @@ def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: 
     thin = b_key[c_bin] - bottom <= double_surface / bin_width
     bin_cluster = np.full(len(b_key), -1, dtype=np.int32)  # clusters <= points
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
-    segment_cluster = np.repeat(bin_cluster, np.diff(np.append(b_start, len(s_bin))))
     c_cell = b_cell[c_bin[new_cluster]]
-    del bin_cluster, b_start, b_key, b_cell, c_bin, thin, bottom
-    member = np.flatnonzero(segment_cluster >= 0)
+    # the bins' arrays go before the segments' are made: this is the clustering's peak
+    del b_key, b_cell, c_bin, thin, bottom, cluster_of_core_bin, new_cluster
+    bin_of_segment = np.zeros(len(s_bin), dtype=np.int32)
+    bin_of_segment[b_start[1:]] = 1
+    del b_start
+    np.cumsum(bin_of_segment, out=bin_of_segment)
+    segment_cluster = bin_cluster[bin_of_segment]
+    del bin_cluster, bin_of_segment
+    member = segment_cluster >= 0  # a mask: most segments are members
     m_cluster, m_n = segment_cluster[member], s_n[member]
     del segment_cluster
     c_n = np.bincount(m_cluster, m_n, n_clusters)
