@@ -79,7 +79,8 @@ def smoothed_depth(
     on_image &= v < height
     if among is not None:
         on_image &= among
-    on = np.flatnonzero(on_image)
+    # a cloud deprojected from its image lies on it: then a slice, not a gather per array
+    on: slice | np.ndarray = slice(None) if np.all(on_image) else np.flatnonzero(on_image)
     del on_image
     v = v[on]
     v *= width
