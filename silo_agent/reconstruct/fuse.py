@@ -36,12 +36,17 @@ def _set_bits(mask: np.ndarray, group: np.ndarray, camera: np.ndarray, bits: np.
 
     Where the cameras come in runs (a fused cloud: camera by camera), one fancy-indexed OR per
     run, which is right with repeated groups because every element of a run sets the same bit:
-    twice as fast as `np.bitwise_or.at` on the 12 m silo's 3.3 M points."""
+    twice as fast as `np.bitwise_or.at` on the 12 m silo's 3.3 M points. Where the groups do
+    (the clustering's segments, in cluster order), one OR-reduction per group: 1.7x as fast on
+    the 20 m silo's 6 M segments."""
     if len(camera) and np.all(camera[1:] >= camera[:-1]):
         bounds = np.searchsorted(camera, np.arange(int(camera[-1]) + 2))
         for run in range(len(bounds) - 1):
             if bounds[run] < bounds[run + 1]:
                 mask[group[bounds[run] : bounds[run + 1]]] |= bits[bounds[run]]
+    elif len(group) and np.all(group[1:] >= group[:-1]):
+        starts = run_starts(group)
+        mask[group[starts]] |= np.bitwise_or.reduceat(bits, starts)
     else:
         np.bitwise_or.at(mask, group, bits)
 
