@@ -334,7 +334,7 @@ def reconstruct(
     grid = Grid.over(site.region, rough_settings.grid_step_m)
     crossings, clear = _wall_crossings(scan.cameras, site.bin, grid, settings.depth_noise_factor)
     rough = _reconstruct(
-        replace(scan, cameras=_thinned(clear, grid)),
+        replace(scan, cameras=_thinned(scan.cameras, clear, grid)),
         rough_settings,
         site,
         exclude,
@@ -344,7 +344,8 @@ def reconstruct(
     # what only the wall step needs goes before the second pass (a fresh process pays for every
     # page it touches), and each camera's steadied cloud as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
-        cameras, dropped = clear, raw - sum(len(k.points) for k in clear)
+        cameras = [with_points(c, k) for c, k in zip(scan.cameras, clear, strict=True)]
+        dropped = raw - sum(len(c.points) for c in cameras)
         del crossings
     else:
         del clear
@@ -377,38 +378,40 @@ def released(scan: Scan) -> None:
 
 def _wall_crossings(
     cameras: Sequence[CameraCloud], shape: BinShape, grid: Grid, noise_factor: float
-) -> tuple[list[WallCrossing], list[CameraCloud]]:
-    """Each camera's wall crossings on the first pass's `grid` and its points certainly clear
-    of the wall, a camera at a time: the full WallRays (29 bytes a point) never exist for all
-    cameras at once."""
+) -> tuple[list[WallCrossing], list[np.ndarray]]:
+    """Each camera's wall crossings on the first pass's `grid` and which of its points are
+    certainly clear of the wall (a mask, not a copy of them: the first pass reads a few of
+    them, `_thinned`), a camera at a time: the full WallRays (29 bytes a point) never exist
+    for all cameras at once."""
     crossings, clear = [], []
     for cloud in cameras:
         rays = wall_rays(cloud, shape, noise_factor)
         crossings.append(WallCrossing.of(rays, shape, grid))
-        clear.append(with_points(cloud, rays.clear_of_wall))
+        clear.append(rays.clear_of_wall)
     return crossings, clear
 
 
-def _thinned(clouds: list[CameraCloud], grid: Grid) -> list[CameraCloud]:
-    """Every k-th point of each cloud, k such that the first pass's `grid` gets about
-    WALL_PASS_POINTS_PER_CELL points a cell (all of them if it has fewer).
+def _thinned(
+    clouds: Sequence[CameraCloud], clear: Sequence[np.ndarray], grid: Grid
+) -> list[CameraCloud]:
+    """Every k-th of each cloud's points in `clear` (a mask per cloud), k such that the first
+    pass's `grid` gets about WALL_PASS_POINTS_PER_CELL points a cell (all of them if it has
+    fewer).
 
     The first pass gives the grain height at the wall (a ray that met the wall 5 cm above it
     saw wall) and the slope the points are reseated along: 64 points of 10 cm cells know
     both to ~1 cm at 10 m. Eight full-resolution cameras over a 12 m bin bring 250 a cell,
     and the first pass's sort and sums cost by the point."""
     budget = WALL_PASS_POINTS_PER_CELL * int(np.count_nonzero(grid.inside > 0))
-    stride = sum(len(c.points) for c in clouds) // max(budget, 1)
+    stride = sum(int(np.count_nonzero(k)) for k in clear) // max(budget, 1)
     if stride < 2:
-        return clouds
-    return [
-        replace(
-            c,
-            points=np.ascontiguousarray(c.points[::stride]),
-            colors=None if c.colors is None else np.ascontiguousarray(c.colors[::stride]),
-        )
-        for c in clouds
-    ]
+        return [with_points(c, k) for c, k in zip(clouds, clear, strict=True)]
+    out = []
+    for cloud, keep in zip(clouds, clear, strict=True):
+        rows = np.flatnonzero(keep)[::stride]
+        colors = None if cloud.colors is None else cloud.colors[rows]
+        out.append(replace(cloud, points=cloud.points[rows], colors=colors))
+    return out
 
 
 def _reconstruct(
