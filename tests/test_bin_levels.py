@@ -90,3 +90,26 @@ def test_points_seen_in_wide_blobs_are_reseated_on_the_averaged_surface() -> Non
     level = reseat_level(grid, heights, observed, information, np.broadcast_to(blob, (40, 40)))
     assert np.all(np.abs(level[5:-5, 5:15] - 1.0) < 0.05)  # averaged over many blobs
     assert np.array_equal(level[:, 20:], heights[:, 20:])  # the cell's own mean
+
+
+def test_a_shallow_dip_is_no_crater_but_a_crater_at_repose_is() -> None:
+    """A 1.5 m dip of 11 deg (a rounded crease, noise blobs) reads as the averaged surface; a
+    crater at the angle of repose as wide reads at its tip."""
+    n = round(8.0 / STEP)
+    grid = Grid((-4.0, -4.0), STEP, (n, n), np.ones((n, n)))
+    xs, ys = grid.centres()
+    distance = np.hypot(xs, ys)
+    noise = np.random.default_rng(5).normal(0.0, 0.02, distance.shape)
+    information = np.full(distance.shape, 1.0 / (0.02**2 * grid.cell_area))
+    cells = np.ones(distance.shape, dtype=bool)
+    at = (n // 2, n // 2)
+    for slope, is_crater in ((0.2, False), (SLOPE, True)):
+        radius = 1.5
+        bottom = 1.0 - slope * radius
+        heights = 1.0 - slope * np.maximum(0.0, radius - distance) + noise
+        averaged = bottom + 0.1  # what the levels' averaged surface might read there
+        level = _cone_or_mean(grid, heights, cells, information, at, averaged, True)
+        if is_crater:
+            assert abs(level - bottom) < 0.03
+        else:
+            assert level == averaged

@@ -204,7 +204,7 @@ def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:
 LEVEL_SCALE_M = 0.4  # without a noise model: where a bin's highest and lowest grain are looked for
 LEVEL_FIT_RADIUS_M = 1.0  # ... and the radius of the cone fitted there
 LEVEL_WALL_BAND_M = 0.3  # ... but not this close to a bin's wall
-LEVEL_CONE_MIN_SLOPE = 0.15  # a fitted slope under this (8.5 deg) is a flat surface's noise
+LEVEL_CONE_MIN_SLOPE = 0.3  # a fitted slope under this (17 deg) is no heap or crater (below)
 GRAIN_MIN_DEPTH_M = 0.10  # grain, for a bin's levels: this deep, smoothed at LEVEL_SCALE_M
 LEVEL_SIGMA_M = 0.015  # a level is read where the surface is known to this (1 sigma) ...
 LEVEL_SCALES_M = (0.15, 0.3, 0.6, 1.2, 2.4)  # ... averaged over the widest of these that
@@ -289,7 +289,12 @@ def _cone_fit(
     """`_weighted_fit` of a cone (`design`'s second column the distance from the tip): the
     coefficients, and how steep the fitted slope must be to stand clear of flat
     (LEVEL_CONE_MIN_SLOPE, and LEVEL_CONE_SIGMAS of its own noise), and the sigma of the tip
-    (the first coefficient); None if the fit is singular."""
+    (the first coefficient); None if the fit is singular.
+
+    Grain heaps and craters stand at the angle of repose (23-35 deg, REPOSE_DEG): a slope under
+    17 deg is a rounded crease where a heap meets flat grain, or a dip of noise blobs, and its
+    tip no level (at 8.5 deg an 18 m bin's ring 1 m outside its heap read a 0.19 m deep
+    "crater", the averaged surface there -0.03 m)."""
     fit = _weighted_fit(design, weight, heights)
     if fit is None:
         return None

@@ -183,6 +183,10 @@ class WallCrossing:
     cell: np.ndarray  # (N,) int32 flat index into the first pass's grid
     wall_z: np.ndarray  # (N,) float64
 
+    def every(self, stride: int) -> WallCrossing:
+        """The crossings of every `stride`-th point."""
+        return self if stride < 2 else WallCrossing(self.cell[::stride], self.wall_z[::stride])
+
     @classmethod
     def of(cls, rays: WallRays, shape: BinShape, grid: Grid) -> WallCrossing:
         row, col = _cell_inward(shape, grid, rays.wall_x, rays.wall_y)
