@@ -38,6 +38,17 @@ def test_grid_step_barely_matters(cone_scan_4: Scan, cone_scene: Scene) -> None:
     assert max(errors) - min(errors) < 0.01, errors
 
 
+def test_two_views_give_the_same_volume_at_a_coarse_and_a_fine_step(
+    cone_scan_2: Scan, cone_scene: Scene
+) -> None:
+    """Issue 24: the trust rule judged density on the grid's own cells, so at 1 cm (a point or
+    two a cell) it dropped cells by chance and at 10 cm whole partly seen ones: +1.77 % at
+    0.1 m, +2.55 % at 0.01 m. Judged on 5 cm blocks at every step: +2.04 and +1.85 %."""
+    errors = [_error(cone_scan_2, cone_scene.volume, grid_step_m=s) for s in (0.1, 0.01)]
+    assert all(abs(e) < 0.03 for e in errors), errors
+    assert abs(errors[0] - errors[1]) < 0.005, errors
+
+
 def test_bicm_beats_the_rectangle_method(cone_scan_2: Scan, cone_scene: Scene) -> None:
     for step in (0.05, 0.01):
         bicm = abs(_error(cone_scan_2, cone_scene.volume, grid_step_m=step))

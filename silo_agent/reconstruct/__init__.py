@@ -19,7 +19,7 @@ from scipy import ndimage
 
 from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
 from silo_agent.grid.bin_shape import BinShape
-from silo_agent.grid.filters import dilate_cross
+from silo_agent.grid.filters import block_sums, dilate_cross
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
@@ -61,6 +61,8 @@ __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
 
 EDGE_BAND_M = 0.10  # how far from a hole a sparse cell is suspect (see _trusted_cells)
 EDGE_DENSITY_RATIO = 0.5
+TRUST_BLOCK_M = 0.05  # ... judged on blocks this wide on the ground, at every grid step
+TRUST_POINTS = 16  # ... or wider where a typical block holds fewer points than this
 SPIKE_WIDTH_M = 0.10  # narrower raised features are not grain (see _without_spikes)
 BIN_DENOISE_SCALE_M = 0.5  # bins: noise blobs of ~0.2 m at 8-10 m must not be clipped
 BIN_EPS_MAX_M = 1.0  # a bin's grain is seen at up to ~10 m, with up to ~0.5 m of noise
@@ -200,19 +202,73 @@ def _slope_corrected(
     return np.where(observed, shift, filled)
 
 
-def _trusted_cells(grid: Grid, observed: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def _trusted_cells(
+    grid: Grid, observed: np.ndarray, counts: np.ndarray, sub_counts: np.ndarray | None = None
+) -> np.ndarray:
     """Observed cells whose height can be trusted as a boundary value for the fill.
 
     At the edge of a camera's view or of a shadow, depth noise along the ray carries points
     past the edge into cells that see nothing else; those cells hold only the points pushed
-    towards the camera and read high. They show as cells near a hole with far fewer points
-    than their neighbours, and are left to the fill instead.
+    towards the camera and read high. They show as ground near a hole with far fewer points
+    than the ground around it, and are left to the fill instead.
+
+    How many points a place holds is judged on blocks of a fixed size on the ground, not on
+    the grid's cells, so that the rule means the same at every grid step: TRUST_BLOCK_M, or
+    wider if the scan's typical block of that size holds fewer than TRUST_POINTS points. On
+    a fine grid a cell holds about one point and its count says nothing (a cell with none
+    is no hole, one with fewer than its neighbours no edge: at 1 cm the rule dropped 15 % of
+    bay-cone's cells by chance). A cell wider than a block (`sub_counts`: the points counted
+    on cells 1/m as wide, `_sub_counts`) is dropped only when none of its sub-cells with
+    points is trusted: a cell at the edge of a view that is partly seen holds real ground
+    (at 10 cm dropping those cells grew cone A1A5's holes, +3.87 % against +2.9 % finer).
     """
-    band = max(1, round(EDGE_BAND_M / grid.step))
-    near_hole = dilate_cross(~observed & (grid.inside > 0), band)
-    local = masked_smooth(counts.astype(float), observed, band / 2)
-    sparse = counts < EDGE_DENSITY_RATIO * np.nan_to_num(local)
-    return observed & ~(near_hole & sparse)
+    inside = grid.inside > 0
+    m = 1 if sub_counts is None else sub_counts.shape[0] // grid.shape[0]
+    if m > 1:
+        assert sub_counts is not None
+        seen = np.repeat(np.repeat(observed, m, axis=0), m, axis=1) & (sub_counts > 0)
+        inside = np.repeat(np.repeat(inside, m, axis=0), m, axis=1)
+        counts = sub_counts
+    else:
+        seen = observed
+    step = grid.step / m
+    k = max(1, round(TRUST_BLOCK_M / step))
+    points = block_sums(counts.astype(np.float64), k)
+    area = block_sums(inside.astype(np.float64), k)
+    seen_blocks = block_sums(seen.astype(np.float64), k) > 0
+    if np.any(seen_blocks):  # wider blocks if the typical one holds too few points to judge
+        typical = float(np.median(points[seen_blocks] / area[seen_blocks]))  # points a cell
+        wide = round(np.sqrt(TRUST_POINTS / max(typical, 1e-12)))
+        if wide > k:
+            k = wide
+            points = block_sums(counts.astype(np.float64), k)
+            area = block_sums(inside.astype(np.float64), k)
+            seen_blocks = block_sums(seen.astype(np.float64), k) > 0
+    band = max(1, round(EDGE_BAND_M / (k * step)))
+    near_hole = dilate_cross(~seen_blocks & (area > 0), band)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        density = points / area
+    local = masked_smooth(density, seen_blocks, band / 2)
+    suspect = near_hole & (density < EDGE_DENSITY_RATIO * np.nan_to_num(local))
+    rows, cols = seen.shape
+    suspect = np.repeat(np.repeat(suspect, k, axis=0), k, axis=1)[:rows, :cols]
+    if m == 1:
+        return observed & ~suspect
+    return observed & (block_sums((seen & ~suspect).astype(np.int64), m) > 0)
+
+
+def _sub_counts(grid: Grid, points: np.ndarray) -> np.ndarray | None:
+    """Points counted on cells 1/m as wide as `grid`'s, m the smallest with cells no wider
+    than TRUST_BLOCK_M (None if the grid's own are): what `_trusted_cells` judges a wide
+    cell's points on."""
+    m = int(np.ceil(grid.step / TRUST_BLOCK_M - 1e-9))
+    if m <= 1:
+        return None
+    rows, cols = grid.shape[0] * m, grid.shape[1] * m
+    inverse = m / grid.step
+    col = np.clip(np.floor((points[:, 0] - grid.origin[0]) * inverse).astype(np.int64), 0, cols - 1)
+    row = np.clip(np.floor((points[:, 1] - grid.origin[1]) * inverse).astype(np.int64), 0, rows - 1)
+    return np.bincount(row * cols + col, minlength=rows * cols).reshape(rows, cols)
 
 
 def _without_spikes(
@@ -525,6 +581,7 @@ def _reconstruct(
     del moments
     segments = height_segments(points, camera, cell, grid, totals)
     counts = _PointCounts(raw_count, in_region, len(points))
+    sub_counts = _sub_counts(grid, points)
     del points, camera, cell
     cells = clustered_means(
         segments, grid, totals, settings.cluster_min_points, settings.max_clusters
@@ -532,7 +589,8 @@ def _reconstruct(
     clock.lap("clustered_means")
     del segments, totals
     observed = np.isfinite(cells.height) & (grid.inside > 0)
-    observed = _trusted_cells(grid, observed, cells.points)
+    observed = _trusted_cells(grid, observed, cells.points, sub_counts)
+    del sub_counts
     bin_cells = _BinCells(grid, site.bin) if site.bin is not None else None
     band = _wall_band(grid, bin_cells, observed)
     seen = observed & band  # measured cells of the band: covered, though filled
