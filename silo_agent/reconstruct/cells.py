@@ -7,11 +7,17 @@ numpy's SIMD sort orders it in place where the CPU has a fast one (`SIMD_SORT`),
 sort (timsort, which finds the runs a camera's pixel order leaves in the key) elsewhere; the
 results are the same either way.
 
-Two refinements over the paper, both measured in bench/accuracy.py:
-- a cluster's centroid is the mean over cameras of each camera's mean height in it, so a
-  camera that happens to see a cell more densely does not pull the surface towards itself;
-- voxel down-sampling is optional (off by default): equal weight per voxel quantises heights
-  on a global bin phase and biased flat floors by up to half a voxel.
+A refinement over the paper, measured in bench/accuracy.py: voxel down-sampling is optional
+(off by default): equal weight per voxel quantises heights on a global bin phase and biased
+flat floors by up to half a voxel.
+
+A cluster's centroid is the mean height of its points, each point counted once whatever its
+camera: the same statistic at every grid step. A mean over cameras of each camera's mean
+(kept until 2026-12) weighed the cameras alike in a coarse cell, where each has points, but by
+their points in a fine one, which holds one camera's: with 0.1 deg / 3 mm calibration the
+cameras' floors disagree by up to 8 mm, and the volume moved with the step (bay-cone, four
+views: +4.57 % at 0.1 m, +3.62 % at 5 mm; bench/results/accuracy-steps.md). Counting points
+moved no mean error of the accuracy or round-bin bench up by more than 0.05 pp and most down.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from silo_agent.grid.grid import Grid
-from silo_agent.reconstruct.fuse import CameraPairs, CellMoments, run_starts
+from silo_agent.reconstruct.fuse import CellMoments, run_starts
 from silo_agent.reconstruct.residual import median
 
 Z_QUANTUM_M = 1e-4  # height resolution inside the sort key
@@ -180,10 +186,10 @@ class _Clusters:
 
     count: np.ndarray  # points
     cell: np.ndarray
-    z: np.ndarray  # camera-balanced centroid height, silo frame
+    z: np.ndarray  # mean height of the cluster's points, silo frame
 
 
-def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: int) -> _Clusters:
+def _clusters(segments: _Segments, eps_m: float, double_surface: float) -> _Clusters:
     """1-D density clustering (DBSCAN on a height histogram) of every cell at once: a bin is
     core when its 3-bin neighbourhood holds CORE_DENSITY x the cell's densest one; clusters
     are runs of core bins in a cell, split by a gap of more than eps."""
@@ -231,23 +237,14 @@ def _clusters(segments: _Segments, eps_m: float, double_surface: float, n_cams: 
     segment_cluster = bin_cluster[bin_of_segment]
     del bin_cluster, bin_of_segment
     member = segment_cluster >= 0  # a mask: most segments are members
-    m_cluster, m_n = segment_cluster[member], s_n[member]
+    m_cluster = segment_cluster[member]
     del segment_cluster
-    c_n = np.bincount(m_cluster, m_n, n_clusters)
+    c_n = np.bincount(m_cluster, s_n[member], n_clusters)
 
-    # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster,
-    # over the (cluster, camera) pairs that occur (not a clusters x cameras array)
-    pairs = CameraPairs.of(m_cluster, segments.camera[member], n_clusters, n_cams)
-    del m_cluster
-    size = len(pairs.group)
-    # bincount reads intp: cast once each (and drop what is read) rather than once a call
-    element, pair_cluster = pairs.of_element.astype(np.intp), pairs.group.astype(np.intp)
-    del pairs
-    pair_mean = np.bincount(element, segments.z_sum[member], size) / np.bincount(element, m_n, size)
-    del element, member, m_n
-    c_z = segments.z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
-        pair_cluster, minlength=n_clusters
-    )
+    # the points' mean height: what a cell of any size means by it (the cameras' mean heights
+    # averaged alike meant that in a cell every camera sees, but the point's own camera in
+    # one holding a point, so the volume moved with the grid step; see the module docstring)
+    c_z = segments.z0 + np.bincount(m_cluster, segments.z_sum[member], n_clusters) / c_n
     return _Clusters(c_n, c_cell, c_z)
 
 
@@ -316,9 +313,8 @@ def clustered_means(
         return CellHeights(nan, nan, nan, zeros, zeros, eps_m or 0.0, min_points, 0.0)
 
     per_cell = totals.points
-    n_cams = totals.n_cams
     double_surface = max(DOUBLE_SURFACE_FACTOR * eps_m, DOUBLE_SURFACE_MIN_M)
-    found = _clusters(segments, eps_m, double_surface, n_cams)
+    found = _clusters(segments, eps_m, double_surface)
     c_n, c_cell, c_z = found.count, found.cell, found.z
     n_clusters = len(c_n)
 
