@@ -584,7 +584,12 @@ def _reconstruct(
     sub_counts = _sub_counts(grid, points)
     del points, camera, cell
     cells = clustered_means(
-        segments, grid, totals, settings.cluster_min_points, settings.max_clusters
+        segments,
+        grid,
+        totals,
+        settings.cluster_min_points,
+        settings.max_clusters,
+        balance_cameras=site.bin is not None,
     )
     clock.lap("clustered_means")
     del segments, totals
