@@ -384,21 +384,7 @@ def reconstruct(
         result.points["raw"] = raw
         return result
     started = time.perf_counter()
-    rough_settings = settings.model_copy(
-        update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
-    )
-    grid = Grid.over(site.region, rough_settings.grid_step_m)
-    crossings, clear = _wall_crossings(scan.cameras, site.bin, grid, settings.depth_noise_factor)
-    rough = _reconstruct(
-        replace(scan, cameras=_thinned(scan.cameras, clear, grid)),
-        rough_settings,
-        site,
-        exclude,
-        calibration,
-        first_pass=True,
-    )
-    if rough.heightmap is not None:
-        rough = _refined(scan, crossings, grid, rough, rough_settings, site, exclude, calibration)
+    grid, crossings, clear, rough = _wall_pass(scan, site.bin, settings, site, exclude, calibration)
     # what only the wall step needs goes before the second pass (a fresh process pays for every
     # page it touches), and each camera's steadied cloud as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
@@ -447,6 +433,33 @@ def _wall_crossings(
         crossings.append(WallCrossing.of(rays, shape, grid))
         clear.append(rays.clear_of_wall)
     return crossings, clear
+
+
+def _wall_pass(
+    scan: Scan,
+    shape: BinShape,
+    settings: ReconstructionConfig,
+    site: Site,
+    exclude: Sequence[tuple[float, float, float]],
+    calibration: CalibrationConfig | None,
+) -> tuple[Grid, list[WallCrossing], list[np.ndarray], Reconstruction]:
+    """A bin's coarse first pass (WALL_PASS_STEP_M at least), made again (`_refined`): its
+    grid, each camera's wall crossings and points certainly clear of the wall, and the pass."""
+    rough_settings = settings.model_copy(
+        update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
+    )
+    grid = Grid.over(site.region, rough_settings.grid_step_m)
+    crossings, clear = _wall_crossings(scan.cameras, shape, grid, settings.depth_noise_factor)
+    rough = _reconstruct(
+        replace(scan, cameras=_thinned(scan.cameras, clear, grid)),
+        rough_settings,
+        site,
+        exclude,
+        calibration,
+        first_pass=True,
+    )
+    rough = _refined(scan, crossings, grid, rough, rough_settings, site, exclude, calibration)
+    return grid, crossings, clear, rough
 
 
 def _refined(
