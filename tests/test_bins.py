@@ -11,11 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import silo_agent.reconstruct.walls as walls
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import ReconstructionConfig, parse_config
+from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import Reconstruction, _wall_pass, reconstruct, site_from_config
-from silo_agent.reconstruct.walls import FirstSurface, reseated, wall_rays
+from silo_agent.reconstruct.walls import FirstSurface, WallCrossing, reseated, wall_free, wall_rays
 from silo_agent.scan import CameraCloud, read_scan, write_scan
 from silo_agent.sim.camera import NoiseModel
 from silo_agent.sim.scenes import make_scene
@@ -203,6 +205,49 @@ def test_noise_free_wall_pixels_are_all_dropped_and_grain_kept() -> None:
     assert result.points["wall"] <= on_wall.sum() + 0.02 * (~on_wall).sum()
     assert result.surface is not None
     assert result.surface.max == pytest.approx(scene.truth()["level_max_m"], abs=0.03)
+
+
+def _wall_camera() -> tuple[CameraCloud, BinShape]:
+    scene = make_scene("bin-heap")
+    scan = simulate(scene, ["A1"], seed=0, resolution=(424, 240))
+    assert scene.bin is not None
+    return scan.cameras[0], scene.bin
+
+
+def test_wall_crossings_in_chunks_are_the_whole_clouds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A camera's crossings made a chunk of points at a time are WallRays's, cell for cell,
+    the height rounded to float32, the clear points the same."""
+    cloud, shape = _wall_camera()
+    grid = Grid.over(shape.wall_polygon(), 0.1)
+    rays = wall_rays(cloud, shape, 2.5)
+    whole = WallCrossing.of(rays, shape, grid)
+    monkeypatch.setattr(walls, "CHUNK_POINTS", 1000)  # many chunks, the last one short
+    assert len(cloud.points) % 1000
+    chunked, clear = WallCrossing.of_cloud(cloud, shape, grid, 2.5)
+    assert chunked.cell.dtype == np.uint16  # a 10 cm grid over a 10 m bin
+    assert np.array_equal(chunked.cell, whole.cell)
+    assert np.array_equal(chunked.wall_z, rays.wall_z.astype(np.float32))
+    assert np.array_equal(clear, rays.clear_of_wall)
+
+
+def test_the_wall_test_is_the_exact_heights_though_they_are_kept_rounded() -> None:
+    """A ray meeting the wall exactly at the grain (plus clearance) is kept, one a float64 step
+    above it goes: the rounded heights alone would get about half of either wrong."""
+    cloud, shape = _wall_camera()
+    grid = Grid.over(shape.wall_polygon(), 0.1)
+    exact = wall_rays(cloud, shape, 2.5).wall_z
+    crossing = WallCrossing.of_cloud(cloud, shape, grid, 2.5)[0]
+    meets = np.isfinite(exact)
+    assert np.mean(crossing.wall_z[meets] != exact[meets]) > 0.9  # rounded
+    heights = np.zeros(grid.shape)
+    for limit, kept in ((exact, True), (np.nextafter(exact, -np.inf), False)):
+        keep = walls._below_wall(cloud, crossing, shape, limit)
+        assert np.all(keep[meets] == kept)
+    crossings = [crossing]
+    out, dropped = wall_free([cloud], crossings, shape, heights)
+    assert crossings == []  # consumed
+    assert dropped == int(np.count_nonzero(exact > walls.WALL_CLEARANCE_M))  # grain at 0
+    assert len(out[0].points) == len(cloud.points) - dropped
 
 
 # ---------------------------------------------------------------- config

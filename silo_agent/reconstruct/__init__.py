@@ -52,7 +52,6 @@ from silo_agent.reconstruct.walls import (
     reseat_level,
     reseated,
     wall_free,
-    wall_rays,
     with_points,
 )
 from silo_agent.scan import CameraCloud, Scan, Site
@@ -425,13 +424,13 @@ def _wall_crossings(
 ) -> tuple[list[WallCrossing], list[np.ndarray]]:
     """Each camera's wall crossings on the first pass's `grid` and which of its points are
     certainly clear of the wall (a mask, not a copy of them: the first pass reads a few of
-    them, `_thinned`), a camera at a time: the full WallRays (29 bytes a point) never exist
-    for all cameras at once."""
+    them, `_thinned`), a camera at a time (`WallCrossing.of_cloud`: and a chunk of its points
+    at a time)."""
     crossings, clear = [], []
     for cloud in cameras:
-        rays = wall_rays(cloud, shape, noise_factor)
-        crossings.append(WallCrossing.of(rays, shape, grid))
-        clear.append(rays.clear_of_wall)
+        crossing, clear_of_wall = WallCrossing.of_cloud(cloud, shape, grid, noise_factor)
+        crossings.append(crossing)
+        clear.append(clear_of_wall)
     return crossings, clear
 
 

@@ -35,6 +35,7 @@ WALL_CLEARANCE_M = 0.05  # a ray meeting the wall this far above the grain still
 RESEAT_SCALE_M = 0.4  # the first pass's surface, smoothed at this scale, gives the slope
 RESEAT_MIN_FALL = 0.1  # rays within ~6 deg of the surface are left where the noise put them
 RESEAT_MAX_SIGMAS = 3.0  # no point moves along its ray by more than this many depth RMS
+CHUNK_POINTS = 1 << 16  # per-point work a chunk at a time: its temporaries stay in cache
 
 
 @dataclass(frozen=True)
@@ -61,32 +62,40 @@ def smoothed_depth(
     width, height = int(k["width"]), int(k["height"])
     points = cloud.points
     z = points[:, 2].astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):  # in place: x / z * fx + ppx, rounded
-        u = points[:, 0].astype(np.float64)
-        u /= z
-        u *= k["fx"]
-        u += k["ppx"]
-        np.rint(u, out=u)
-        v = points[:, 1].astype(np.float64)
-        v /= z
-        v *= k["fy"]
-        v += k["ppy"]
-        np.rint(v, out=v)
-    on_image = z > 0
-    on_image &= u >= 0
-    on_image &= u < width
-    on_image &= v >= 0
-    on_image &= v < height
+    # each point's pixel, a chunk at a time (the float64 columns of a chunk, not of the cloud:
+    # 16 bytes a point less at the peak), as one flat index: written and read as one
+    on_image = np.empty(len(z), dtype=bool)
+    pixel = np.empty(len(z), dtype=np.int32)  # an image's pixels fit (1280 x 720 is 0.9 M)
+    for start in range(0, len(z), CHUNK_POINTS):
+        rows = slice(start, start + CHUNK_POINTS)
+        depth = z[rows]
+        with np.errstate(divide="ignore", invalid="ignore"):  # in place: x / z * fx + ppx
+            u = points[rows, 0].astype(np.float64)
+            u /= depth
+            u *= k["fx"]
+            u += k["ppx"]
+            np.rint(u, out=u)
+            v = points[rows, 1].astype(np.float64)
+            v /= depth
+            v *= k["fy"]
+            v += k["ppy"]
+            np.rint(v, out=v)
+        valid = on_image[rows]  # a view: written in place
+        np.greater(depth, 0, out=valid)
+        valid &= u >= 0
+        valid &= u < width
+        valid &= v >= 0
+        valid &= v < height
+        v *= width
+        v += u
+        v[~valid] = 0  # off the image: any pixel, never read
+        pixel[rows] = v
     if among is not None:
         on_image &= among
     # a cloud deprojected from its image lies on it: then a slice, not a gather per array
     on: slice | np.ndarray = slice(None) if np.all(on_image) else np.flatnonzero(on_image)
     del on_image
-    v = v[on]
-    v *= width
-    v += u[on]
-    pixel = v.astype(np.intp)  # a flat index: written and read as one, not as (v, u) pairs
-    del u, v
+    pixel = pixel[on]
     # float32 planes: scipy sums each window in float64 and rounds the mean once (a depth
     # off by ~1e-7 of itself, a micrometre at 10 m), at 16 ms a 1280x720 image against 25
     image = np.zeros((2, height * width), np.float32)
@@ -104,13 +113,16 @@ def smoothed_depth(
     return z
 
 
-def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallRays:
-    """Where each point's ray meets the wall, and the first pass's verdict on it."""
-    rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
-    z = cloud.points[:, 2]
+def _ray_walls(
+    points: np.ndarray, rotation: np.ndarray, origin: np.ndarray, shape: BinShape
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the rays through camera-frame `points` meet the wall: (depth along the ray,
+    silo-frame x, y, z), -inf height for a ray that never does. Point by point: the same for a
+    point in any chunk of a cloud (what WallCrossing's exact look-up relies on)."""
+    z = points[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         inverse = np.float32(1.0) / z  # the ray through a point, scaled to camera z = 1
-    across, down = cloud.points[:, 0] * inverse, cloud.points[:, 1] * inverse
+    across, down = points[:, 0] * inverse, points[:, 1] * inverse
     # column by column: a (N, 3) @ (3, 3) product is BLAS with an inner dimension of 3, slow
     dx, dy, dz = (r[0] * across + r[1] * down + r[2] for r in rotation.astype(np.float32))
     depth = shape.ray_wall_depth(float(origin[0]), float(origin[1]), dx, dy)
@@ -118,14 +130,27 @@ def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallR
     reach = np.where(finite, depth, 0.0)
     wall_x, wall_y = origin[0] + dx * reach, origin[1] + dy * reach
     wall_z = np.where(finite, origin[2] + dz * reach, -np.inf)
-    smoothed = smoothed_depth(cloud)
+    return depth, wall_x, wall_y, wall_z
+
+
+def _clear_of_wall(
+    smoothed: np.ndarray | None, depth: np.ndarray, focal: float, noise_factor: float
+) -> np.ndarray:
+    """The first pass's verdict: a point's smoothed depth short of the wall's (`depth` along
+    its ray) by FIRST_PASS_SIGMAS of the smoothed depth noise there."""
     if smoothed is None:
-        clear = np.ones(len(z), dtype=bool)
-    else:
-        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
-        rms = depth_rms_m(np.where(np.isfinite(depth), depth, 0.0), focal, noise_factor)
-        margin = np.maximum(FIRST_PASS_MIN_MARGIN_M, FIRST_PASS_SIGMAS * SMOOTHED_NOISE_SHARE * rms)
-        clear = smoothed < depth - margin
+        return np.ones(len(depth), dtype=bool)
+    rms = depth_rms_m(np.where(np.isfinite(depth), depth, 0.0), focal, noise_factor)
+    margin = np.maximum(FIRST_PASS_MIN_MARGIN_M, FIRST_PASS_SIGMAS * SMOOTHED_NOISE_SHARE * rms)
+    return np.asarray(smoothed < depth - margin)
+
+
+def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallRays:
+    """Where each point's ray meets the wall, and the first pass's verdict on it."""
+    rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
+    depth, wall_x, wall_y, wall_z = _ray_walls(cloud.points, rotation, origin, shape)
+    focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
+    clear = _clear_of_wall(smoothed_depth(cloud), depth, focal, noise_factor)
     return WallRays(depth, wall_x, wall_y, wall_z, clear)
 
 
@@ -177,11 +202,17 @@ def _cell_inward(
 class WallCrossing:
     """What `wall_free` reads of one camera's rays, per point: the cell of the first pass's
     grid that gives the grain height at the wall there (`_cell_inward`'s), and the height at
-    which the ray meets the wall. 12 bytes a point where WallRays holds 29: they are kept
-    through the first pass (8 full-resolution cameras: 88 MB against 214 MB)."""
+    which the ray meets the wall, rounded to float32. 6 bytes a point (8 on a grid of over
+    65536 cells) where WallRays holds 29: they are kept through the first pass (8
+    full-resolution cameras: 44 MB against 214 MB).
 
-    cell: np.ndarray  # (N,) int32 flat index into the first pass's grid
-    wall_z: np.ndarray  # (N,) float64
+    The height is float64 where it is computed; rounded, it is off by at most half a float32
+    step (0.5 um at 8 m), and `wall_free` computes it again, exactly, for the few points
+    whose rounded height is within two steps of their grain height: its verdicts are the
+    float64 height's."""
+
+    cell: np.ndarray  # (N,) uint16 or int32 flat index into the first pass's grid (_cell_of)
+    wall_z: np.ndarray  # (N,) float32, rounded from the float64 height
 
     def every(self, stride: int) -> WallCrossing:
         """The crossings of every `stride`-th point."""
@@ -189,11 +220,59 @@ class WallCrossing:
 
     @classmethod
     def of(cls, rays: WallRays, shape: BinShape, grid: Grid) -> WallCrossing:
-        row, col = _cell_inward(shape, grid, rays.wall_x, rays.wall_y)
-        cell = row.astype(np.int32)  # the grid's cells fit (base/limits.py)
-        cell *= grid.shape[1]
-        cell += col
-        return cls(cell, rays.wall_z)
+        return cls(_cell_of(shape, grid, rays.wall_x, rays.wall_y), rays.wall_z.astype(np.float32))
+
+    @classmethod
+    def of_cloud(
+        cls, cloud: CameraCloud, shape: BinShape, grid: Grid, noise_factor: float
+    ) -> tuple[WallCrossing, np.ndarray]:
+        """A camera's crossings and which of its points are certainly clear of the wall
+        (`wall_rays`'s verdict), a chunk of points at a time: WallRays's float64 columns
+        never exist for the whole cloud (the wall step's peak: 95 -> 30 bytes a point)."""
+        rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
+        focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
+        smoothed = smoothed_depth(cloud)
+        n = len(cloud.points)
+        cell = np.empty(n, dtype=_cell_dtype(grid))
+        wall_z = np.empty(n, dtype=np.float32)
+        clear = np.empty(n, dtype=bool)
+        for start in range(0, n, CHUNK_POINTS):
+            rows = slice(start, start + CHUNK_POINTS)
+            depth, x, y, z = _ray_walls(cloud.points[rows], rotation, origin, shape)
+            cell[rows] = _cell_of(shape, grid, x, y)
+            wall_z[rows] = z
+            near = None if smoothed is None else smoothed[rows]
+            clear[rows] = _clear_of_wall(near, depth, focal, noise_factor)
+        return cls(cell, wall_z), clear
+
+
+def _cell_of(shape: BinShape, grid: Grid, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """`_cell_inward`'s cell as a flat index into `grid`: uint16 where the grid's cells fit
+    (a first pass's 10 cm grid over a bin up to 25 m across), else int32 (base/limits.py)."""
+    row, col = _cell_inward(shape, grid, x, y)
+    cell = row.astype(_cell_dtype(grid))
+    cell *= grid.shape[1]
+    cell += col.astype(cell.dtype)
+    return cell
+
+
+def _cell_dtype(grid: Grid) -> type[np.integer]:
+    return np.uint16 if grid.shape[0] * grid.shape[1] <= 1 << 16 else np.int32
+
+
+def _below_wall(
+    cloud: CameraCloud, ray: WallCrossing, shape: BinShape, limit: np.ndarray
+) -> np.ndarray:
+    """Whether each point's ray meets the wall at or below `limit`: judged on the rounded
+    height, and where that is within two float32 steps of `limit`, on the exact one."""
+    keep = ray.wall_z <= limit
+    close = np.abs(ray.wall_z - limit) <= 2 * np.abs(np.spacing(ray.wall_z))
+    rows = np.flatnonzero(close)
+    if len(rows):
+        rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
+        exact = _ray_walls(cloud.points[rows], rotation, origin, shape)[3]
+        keep[rows] = exact <= limit[rows]
+    return keep
 
 
 def wall_free(
@@ -203,12 +282,18 @@ def wall_free(
     heights: np.ndarray,
 ) -> tuple[list[CameraCloud], int]:
     """The cameras without the points whose ray met the wall above the grain (`heights`, a
-    first filled surface on the grid of the crossings' cells), and how many points went."""
+    first filled surface on the grid of the crossings' cells), and how many points went.
+    Consumes `crossings`: each camera's go as soon as it is judged (the list ends empty)."""
+    if len(crossings) != len(cameras):
+        raise ValueError(f"{len(cameras)} cameras, {len(crossings)} crossings")
     out, dropped = [], 0
-    for cloud, ray in zip(cameras, crossings, strict=True):
+    for cloud in cameras:
+        ray = crossings.pop(0)
         level = heights.ravel()[ray.cell]
         level = np.where(np.isfinite(level), level, shape.floor_z)
-        keep = ray.wall_z <= level + WALL_CLEARANCE_M
+        level += WALL_CLEARANCE_M
+        keep = _below_wall(cloud, ray, shape, level)
+        del ray, level
         dropped += int(len(keep) - keep.sum())
         out.append(steadied(with_points(cloud, keep)))
     return out, dropped
