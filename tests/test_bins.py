@@ -450,8 +450,7 @@ def test_the_wall_pass_made_again_reads_the_ring_by_the_far_wall() -> None:
     scene = make_scene("bin-18")
     scan = simulate(scene, FOUR, seed=0)
     site = scan.site
-    assert site.bin is not None
-    grid, _, _, rough = _wall_pass(scan, site.bin, SETTINGS, site, (), None)
+    grid, _, _, rough = _wall_pass(scan, SETTINGS, site, (), None)
     assert rough.heightmap is not None
     xs, ys = grid.centres()
     ring = (np.hypot(xs, ys) > 7.5) & (np.hypot(xs, ys) < 8.7)

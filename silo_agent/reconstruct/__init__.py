@@ -381,7 +381,7 @@ def reconstruct(
         result.points["raw"] = raw
         return result
     started = time.perf_counter()
-    grid, crossings, clear, rough = _wall_pass(scan, site.bin, settings, site, exclude, calibration)
+    grid, crossings, clear, rough = _wall_pass(scan, settings, site, exclude, calibration)
     # what only the wall step needs goes before the second pass (a fresh process pays for every
     # page it touches), and each camera's steadied cloud as soon as it is reseated
     if rough.heightmap is None:  # nothing certainly off the wall: judge by the clear points
@@ -434,7 +434,6 @@ def _wall_crossings(
 
 def _wall_pass(
     scan: Scan,
-    shape: BinShape,
     settings: ReconstructionConfig,
     site: Site,
     exclude: Sequence[tuple[float, float, float]],
@@ -442,11 +441,13 @@ def _wall_pass(
 ) -> tuple[Grid, list[WallCrossing], list[np.ndarray], Reconstruction]:
     """A bin's coarse first pass (WALL_PASS_STEP_M at least), made again (`_refined`): its
     grid, each camera's wall crossings and points certainly clear of the wall, and the pass."""
+    if site.bin is None:
+        raise ValueError("a wall pass needs the bin's geometry (site.bin)")
     rough_settings = settings.model_copy(
         update={"method": "bicm", "grid_step_m": max(settings.grid_step_m, WALL_PASS_STEP_M)}
     )
     grid = Grid.over(site.region, rough_settings.grid_step_m)
-    crossings, clear = _wall_crossings(scan.cameras, shape, grid, settings.depth_noise_factor)
+    crossings, clear = _wall_crossings(scan.cameras, site.bin, grid, settings.depth_noise_factor)
     rough = _reconstruct(
         replace(scan, cameras=_thinned(scan.cameras, clear, grid)),
         rough_settings,
