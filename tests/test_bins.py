@@ -17,7 +17,7 @@ from silo_agent.config import ReconstructionConfig, parse_config
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import Reconstruction, _wall_pass, reconstruct, site_from_config
-from silo_agent.reconstruct.walls import FirstSurface, WallCrossing, reseated, wall_free, wall_rays
+from silo_agent.reconstruct.walls import FirstSurface, WallCrossing, reseated, wall_free
 from silo_agent.scan import CameraCloud, read_scan, write_scan
 from silo_agent.sim.camera import NoiseModel
 from silo_agent.sim.scenes import make_scene
@@ -194,9 +194,9 @@ def test_noise_free_wall_pixels_are_all_dropped_and_grain_kept() -> None:
     cloud = scan.cameras[0]
     p = cloud.points_in_silo()
     on_wall = np.hypot(p[:, 0], p[:, 1]) > 5.0 - 1e-3
-    ray = wall_rays(cloud, shape, 2.5)
-    grain_z = scene.height(ray.wall_x, ray.wall_y)
-    said_wall = ray.wall_z > grain_z  # judged with the exact grain height at the wall
+    _, wall_x, wall_y, wall_z = _rays_to_wall(cloud, shape)
+    grain_z = scene.height(wall_x, wall_y)
+    said_wall = wall_z > grain_z  # judged with the exact grain height at the wall
     assert np.all(said_wall[on_wall & (p[:, 2] > grain_z + 0.01)])
     assert not np.any(said_wall[~on_wall])
     # the engine judges with its own first-pass grain height: all but the crease goes
@@ -207,6 +207,13 @@ def test_noise_free_wall_pixels_are_all_dropped_and_grain_kept() -> None:
     assert result.surface.max == pytest.approx(scene.truth()["level_max_m"], abs=0.03)
 
 
+def _rays_to_wall(
+    cloud: CameraCloud, shape: BinShape
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the whole cloud's rays meet the wall, in float64: (depth, x, y, z)."""
+    return walls._ray_walls(cloud.points, cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3], shape)
+
+
 def _wall_camera() -> tuple[CameraCloud, BinShape]:
     scene = make_scene("bin-heap")
     scan = simulate(scene, ["A1"], seed=0, resolution=(424, 240))
@@ -215,19 +222,20 @@ def _wall_camera() -> tuple[CameraCloud, BinShape]:
 
 
 def test_wall_crossings_in_chunks_are_the_whole_clouds(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A camera's crossings made a chunk of points at a time are WallRays's, cell for cell,
-    the height rounded to float32, the clear points the same."""
+    """A camera's crossings made a chunk of points at a time are the whole cloud's, cell for
+    cell, the height rounded to float32, the clear points the same."""
     cloud, shape = _wall_camera()
     grid = Grid.over(shape.wall_polygon(), 0.1)
-    rays = wall_rays(cloud, shape, 2.5)
-    whole = WallCrossing.of(rays, shape, grid)
+    depth, wall_x, wall_y, wall_z = _rays_to_wall(cloud, shape)
+    focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
+    whole_clear = walls._clear_of_wall(walls.smoothed_depth(cloud), depth, focal, 2.5)
     monkeypatch.setattr(walls, "CHUNK_POINTS", 1000)  # many chunks, the last one short
     assert len(cloud.points) % 1000
     chunked, clear = WallCrossing.of_cloud(cloud, shape, grid, 2.5)
     assert chunked.cell.dtype == np.uint16  # a 10 cm grid over a 10 m bin
-    assert np.array_equal(chunked.cell, whole.cell)
-    assert np.array_equal(chunked.wall_z, rays.wall_z.astype(np.float32))
-    assert np.array_equal(clear, rays.clear_of_wall)
+    assert np.array_equal(chunked.cell, walls._cell_of(shape, grid, wall_x, wall_y))
+    assert np.array_equal(chunked.wall_z, wall_z.astype(np.float32))
+    assert np.array_equal(clear, whole_clear)
 
 
 def test_the_wall_test_is_the_exact_heights_though_they_are_kept_rounded() -> None:
@@ -235,7 +243,7 @@ def test_the_wall_test_is_the_exact_heights_though_they_are_kept_rounded() -> No
     above it goes: the rounded heights alone would get about half of either wrong."""
     cloud, shape = _wall_camera()
     grid = Grid.over(shape.wall_polygon(), 0.1)
-    exact = wall_rays(cloud, shape, 2.5).wall_z
+    exact = _rays_to_wall(cloud, shape)[3]
     crossing = WallCrossing.of_cloud(cloud, shape, grid, 2.5)[0]
     meets = np.isfinite(exact)
     assert np.mean(crossing.wall_z[meets] != exact[meets]) > 0.9  # rounded

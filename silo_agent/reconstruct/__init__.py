@@ -486,7 +486,7 @@ def _refined(
     first = rough.heightmap.heights.astype(np.float64)
     stride = _stride(sum(len(c.points) for c in scan.cameras), grid)
     every = [
-        cloud if stride < 2 else _rows(cloud, np.arange(0, len(cloud.points), stride))
+        cloud if stride < 2 else with_points(cloud, np.arange(0, len(cloud.points), stride))
         for cloud in scan.cameras
     ]
     clouds, _ = wall_free(every, [c.every(stride) for c in crossings], site.bin, first)
@@ -510,12 +510,6 @@ def _stride(points: int, grid: Grid) -> int:
     return max(1, points // max(budget, 1))
 
 
-def _rows(cloud: CameraCloud, rows: np.ndarray) -> CameraCloud:
-    """`cloud` with only the points (and colours) at `rows`."""
-    colors = None if cloud.colors is None else cloud.colors[rows]
-    return replace(cloud, points=cloud.points[rows], colors=colors)
-
-
 def _thinned(
     clouds: Sequence[CameraCloud], clear: Sequence[np.ndarray], grid: Grid
 ) -> list[CameraCloud]:
@@ -523,7 +517,7 @@ def _thinned(
     stride = _stride(sum(int(np.count_nonzero(k)) for k in clear), grid)
     if stride < 2:
         return [with_points(c, k) for c, k in zip(clouds, clear, strict=True)]
-    return [_rows(c, np.flatnonzero(k)[::stride]) for c, k in zip(clouds, clear, strict=True)]
+    return [with_points(c, np.flatnonzero(k)[::stride]) for c, k in zip(clouds, clear, strict=True)]
 
 
 def _reconstruct(

@@ -38,18 +38,6 @@ RESEAT_MAX_SIGMAS = 3.0  # no point moves along its ray by more than this many d
 CHUNK_POINTS = 1 << 16  # per-point work a chunk at a time: its temporaries stay in cache
 
 
-@dataclass(frozen=True)
-class WallRays:
-    """Per point of one camera: where its ray meets the wall (depth and silo height) and
-    whether its smoothed depth image says it is certainly not wall."""
-
-    wall_depth: np.ndarray  # (N,) depth along the ray (camera z) where it meets the wall
-    wall_x: np.ndarray  # (N,) silo-frame point where the ray meets the wall
-    wall_y: np.ndarray
-    wall_z: np.ndarray
-    clear_of_wall: np.ndarray  # (N,) bool
-
-
 def smoothed_depth(
     cloud: CameraCloud, among: np.ndarray | None = None, window_at_848: int = SMOOTHING_PX_AT_848
 ) -> np.ndarray | None:
@@ -145,17 +133,8 @@ def _clear_of_wall(
     return np.asarray(smoothed < depth - margin)
 
 
-def wall_rays(cloud: CameraCloud, shape: BinShape, noise_factor: float) -> WallRays:
-    """Where each point's ray meets the wall, and the first pass's verdict on it."""
-    rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
-    depth, wall_x, wall_y, wall_z = _ray_walls(cloud.points, rotation, origin, shape)
-    focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
-    clear = _clear_of_wall(smoothed_depth(cloud), depth, focal, noise_factor)
-    return WallRays(depth, wall_x, wall_y, wall_z, clear)
-
-
 def with_points(cloud: CameraCloud, keep: np.ndarray) -> CameraCloud:
-    """`cloud` with only the points in `keep` (colours alike)."""
+    """`cloud` with only the points in `keep`, a mask or row indices (colours alike)."""
     colors = rows_where(cloud.colors, keep) if cloud.colors is not None else None
     return replace(cloud, points=rows_where(cloud.points, keep), colors=colors)
 
@@ -203,7 +182,7 @@ class WallCrossing:
     """What `wall_free` reads of one camera's rays, per point: the cell of the first pass's
     grid that gives the grain height at the wall there (`_cell_inward`'s), and the height at
     which the ray meets the wall, rounded to float32. 6 bytes a point (8 on a grid of over
-    65536 cells) where WallRays holds 29: they are kept through the first pass (8
+    65536 cells) where a whole cloud's float64 rays took 29: they are kept through the first pass (8
     full-resolution cameras: 44 MB against 214 MB).
 
     The height is float64 where it is computed; rounded, it is off by at most half a float32
@@ -219,15 +198,11 @@ class WallCrossing:
         return self if stride < 2 else WallCrossing(self.cell[::stride], self.wall_z[::stride])
 
     @classmethod
-    def of(cls, rays: WallRays, shape: BinShape, grid: Grid) -> WallCrossing:
-        return cls(_cell_of(shape, grid, rays.wall_x, rays.wall_y), rays.wall_z.astype(np.float32))
-
-    @classmethod
     def of_cloud(
         cls, cloud: CameraCloud, shape: BinShape, grid: Grid, noise_factor: float
     ) -> tuple[WallCrossing, np.ndarray]:
         """A camera's crossings and which of its points are certainly clear of the wall
-        (`wall_rays`'s verdict), a chunk of points at a time: WallRays's float64 columns
+        (`_clear_of_wall`), a chunk of points at a time: the rays' float64 columns
         never exist for the whole cloud (the wall step's peak: 95 -> 30 bytes a point)."""
         rotation, origin = cloud.extrinsic[:3, :3], cloud.extrinsic[:3, 3]
         focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
