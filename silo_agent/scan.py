@@ -86,16 +86,18 @@ class CameraCloud:
     extra: dict[str, Any] = field(default_factory=dict)  # firmware, gravity, frames, ...
     not_measurements: int = 0  # points of the cloud file dropped when read (`measured_only`)
 
-    def points_in_silo(self) -> np.ndarray:
-        """(N, 3) float32 points in the silo frame.
+    def points_in_silo(self, rows: slice | None = None) -> np.ndarray:
+        """(N, 3) float32 points in the silo frame (of the points in `rows`, default all: each
+        point's the same either way).
 
         Written column by column: a (N, 3) @ (3, 3) product goes through BLAS with an inner
         dimension of 3 and is about 4x slower than nine fused multiply-adds over the columns.
         """
         rotation = self.extrinsic[:3, :3].astype(np.float32)
         translation = self.extrinsic[:3, 3].astype(np.float32)
-        x, y, z = self.points[:, 0], self.points[:, 1], self.points[:, 2]
-        out = np.empty((len(self.points), 3), dtype=np.float32)
+        points = self.points if rows is None else self.points[rows]
+        x, y, z = points[:, 0], points[:, 1], points[:, 2]
+        out = np.empty((len(points), 3), dtype=np.float32)
         for axis in range(3):
             r = rotation[axis]
             column = out[:, axis]
