@@ -227,27 +227,46 @@ class Surface:
         xs, ys = heightmap.cell_centres()
         return cls(heightmap, floor_z, smooth, coarse, surface, columns, xs, ys)
 
-    def pile(self, cells: np.ndarray, detector: str, confidence: float | None = None) -> Pile:
-        """Measure the pile standing on `cells` (boolean, on the map's grid); id 0."""
-        weight = np.maximum(self.columns[cells], 0.0)
+    def pile(
+        self,
+        cells: np.ndarray,
+        detector: str,
+        confidence: float | None = None,
+        box: tuple[slice, ...] | None = None,
+    ) -> Pile:
+        """Measure the pile standing on `cells` (boolean, on the map's grid, or on its `box`
+        when given: a pile's bounding box, `ndimage.find_objects`'); id 0. The same figures
+        either way: the box holds all the pile's cells, in the map's row-major order."""
+
+        def of(values: np.ndarray) -> np.ndarray:
+            return values if box is None else values[box]
+
+        columns, xs, ys, surface = of(self.columns), of(self.xs), of(self.ys), of(self.surface)
+        weight = np.maximum(columns[cells], 0.0)
         total = float(np.sum(weight))
         if total > 0:
             centroid = (
-                float(np.sum(weight * self.xs[cells]) / total),
-                float(np.sum(weight * self.ys[cells]) / total),
+                float(np.sum(weight * xs[cells]) / total),
+                float(np.sum(weight * ys[cells]) / total),
             )
         else:
-            centroid = (float(np.mean(self.xs[cells])), float(np.mean(self.ys[cells])))
-        top = int(np.argmax(np.where(cells, np.nan_to_num(self.surface, nan=-np.inf), -np.inf)))
-        area = self.heightmap.inside * self.heightmap.step**2
+            centroid = (float(np.mean(xs[cells])), float(np.mean(ys[cells])))
+        top = np.where(cells, np.nan_to_num(surface, nan=-np.inf), -np.inf)
+        row, col = (int(i) for i in np.unravel_index(int(np.argmax(top)), top.shape))
+        if box is not None and np.max(top) > -np.inf:  # else the map's first cell, as unboxed
+            row, col = row + box[0].start, col + box[1].start
+        elif box is not None:
+            row, col = 0, 0
+        peak = row, col
+        area = of(self.heightmap.inside) * self.heightmap.step**2
         return Pile(
             id=0,
             detector=detector,
             centroid=centroid,
-            peak=(float(self.xs.flat[top]), float(self.ys.flat[top])),
-            peak_height_m=float(self.surface.flat[top] - self.floor_z),
+            peak=(float(self.xs[peak]), float(self.ys[peak])),
+            peak_height_m=float(self.surface[peak] - self.floor_z),
             footprint_m2=float(np.sum(area[cells])),
-            volume_m3=float(np.sum(self.columns[cells])),
+            volume_m3=float(np.sum(columns[cells])),
             confidence=confidence,
         )
 
@@ -281,9 +300,13 @@ def detect_piles(surface: Surface, settings: DetectionConfig) -> list[Pile]:
         settings.min_separation_m / surface.heightmap.step,
     )
     tallest = _highest(coarse, labels, int(labels.max()))
+    # each pile measured over its bounding box, not over the whole map (16 piles on a 20 m
+    # bin's 4 M cells at 1 cm: 0.44 -> 0.08 s under cProfile)
+    boxes = ndimage.find_objects(labels)
     piles = []
     for k in np.flatnonzero(tallest >= settings.min_height_m):  # basins high enough to be piles
-        pile = surface.pile(labels == k, "geometric")
+        box = boxes[k - 1]  # a label with no cell is never high enough (_highest: -inf)
+        pile = surface.pile(labels[box] == k, "geometric", box=box)
         if pile.footprint_m2 >= settings.min_area_m2:
             piles.append(pile)
     piles.sort(key=lambda p: -p.volume_m3)
