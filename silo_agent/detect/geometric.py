@@ -113,9 +113,12 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
         (labels[:, :-1], labels[:, 1:], smooth[:, :-1], smooth[:, 1:]),
         (labels[:-1, :], labels[1:, :], smooth[:-1, :], smooth[1:, :]),
     ):
-        touch = (a != b) & (a > 0) & (b > 0)
-        low, high = np.minimum(a[touch], b[touch]), np.maximum(a[touch], b[touch])
-        pairs.append(np.column_stack([low, high, np.minimum(ha[touch], hb[touch])]))
+        differ = a != b  # the few cells on a boundary, then which of them lie between basins
+        la, lb = a[differ], b[differ]
+        touch = (la > 0) & (lb > 0)
+        la, lb = la[touch], lb[touch]
+        low, high = np.minimum(la, lb), np.maximum(la, lb)
+        pairs.append(np.column_stack([low, high, np.minimum(ha[differ][touch], hb[differ][touch])]))
     edges = np.concatenate(pairs)
     if len(edges) == 0:
         return {}
@@ -128,11 +131,25 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
 
 
 def _highest(values: np.ndarray, labels: np.ndarray, count: int) -> np.ndarray:
-    """Each label's (0..count) highest value, -inf for label 0 and for labels with no cell:
-    a scatter-maximum over the labelled cells (`values` finite there)."""
-    labelled = np.flatnonzero(labels)
+    """Each label's (0..count) highest value, -inf for label 0 and for labels with no cell
+    (`values` finite where labelled).
+
+    A basin is a patch of cells, so in row-major order its cells come in runs: the maximum of
+    each run (one reduceat over the map), then a scatter-maximum over the runs, not over the
+    cells. The same maxima (a maximum does not round); 16 piles' 3 M labelled cells on a 20 m
+    bin at 1 cm: 155-173 -> 13-15 ms, where `np.maximum.at` spent ~50 ns a cell."""
+    flat = labels.ravel()
     highest = np.full(count + 1, -np.inf)
-    np.maximum.at(highest, labels.ravel()[labelled], values.ravel()[labelled])
+    if len(flat) == 0:
+        return highest
+    starts = np.empty(len(flat), dtype=bool)
+    starts[0] = True
+    np.not_equal(flat[1:], flat[:-1], out=starts[1:])
+    runs = np.flatnonzero(starts)
+    del starts
+    with np.errstate(invalid="ignore"):  # the unlabelled cells' runs may be NaN: dropped next
+        np.maximum.at(highest, flat[runs], np.maximum.reduceat(values.ravel(), runs))
+    highest[0] = -np.inf
     return highest
 
 
