@@ -17,7 +17,9 @@ distance transform and a labelling (10-60 ms on 0.2-1.4 M cells):
   conjugate gradients started from the solution on a grid twice as coarse (itself solved the
   same way, down to a small dense system), to a 1e-10 residual up to 30,000 unknowns, 1e-5
   above. On those scenes it converges in <= 52 iterations and beats the libraries: pyamg's
-  setup alone (about 2 us an unknown) costs more than the whole solve, SuperLU 6x slower;
+  setup alone costs more than the whole solve (on the bay batch of bench/silos.py (b), 94,000
+  shallow unknowns a scan: 51 ms, 0.55 us an unknown, against 38 ms for the whole warm-started
+  fill, and 35 ms more to solve), SuperLU 6x slower;
 - a hole 24 cells or more from any known cell that is small (<= 30,000 cells) or compact
   (no more cells than 5 x its depth squared: a square hole has 4): pyamg's classical
   algebraic multigrid as the preconditioner of conjugate gradients, to 1e-10, without the
@@ -25,7 +27,8 @@ distance transform and a labelling (10-60 ms on 0.2-1.4 M cells):
   cell square hole 1.6 s against 0.53 s, 400,000 cells 4.0 s against 1.5 s, its arrays 2.7x
   the memory: 271 against 101 MB), and the few such holes (about 12,000 cells each) in a bay
   a third unobserved held the whole system's iteration back (its fill 0.29-0.47 s against
-  0.22-0.24 s). Its import costs 0.5 s, once a process, when first needed;
+  0.22-0.24 s). Its import costs 0.03-0.04 s once scipy.sparse.linalg is loaded (0.08-0.11 s
+  after numpy and scipy.ndimage alone), once a process, when first needed;
 - a hole with no known cell next to it: left NaN, with a RuntimeWarning.
 Outputs where no hole is routed to pyamg are those of the warm-started iteration alone.
 SuperLU (exact) was 1.5-3x slower than pyamg on large holes with 2x its memory (1.3 GB at 1 M
@@ -323,7 +326,10 @@ def _multigrid_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -
     one backward after it (still a symmetric preconditioner, as conjugate gradients need),
     not pyamg's classical interpolation and symmetric sweeps both ways: on the deep holes of
     the bay batch (bench/silos.py (b), 25-38 k unknowns a scan) setup and solve 53-59 ms
-    against 63-72 ms, 13 iterations against 10, the same solution to 2e-9 m."""
+    against 63-72 ms, 13 iterations against 10, the same solution to 2e-9 m. On the same
+    holes, not faster: smoothed aggregation (120 ms) or root-node (195 ms) hierarchies,
+    SuperLU (90-106 ms), Ruge-Stuben with PMIS splitting (181 ms), a float32 hierarchy,
+    scipy's conjugate gradients around the hierarchy, fewer levels over a dense coarse solve."""
     import pyamg
 
     out = np.where(known, height, np.nan)
