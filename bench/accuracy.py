@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 from benchlib import TimedOut, call_with_timeout, cloudcompare_on_scan, fmt, header
 
-from silo_agent.config import ReconstructionConfig
+from silo_agent.calibrate import level_scan
+from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan
 from silo_agent.sim.scenes import make_scene
@@ -91,7 +92,11 @@ def split_views(combo: str) -> list[str]:
 
 
 def _volume(scan: Scan, method: str, step: float) -> float | None:
-    """`method` is a method's name, or bicm/FILL for bicm with that fill."""
+    """`method` is a method's name, or bicm/FILL for bicm with that fill; METHOD+level: the
+    scan leveled first as `calibration.level` levels it (each camera on the floor it sees)."""
+    method, plus, _ = method.partition("+")
+    if plus:
+        scan, _, _ = level_scan(scan, CalibrationConfig(level=True))
     base, _, fill = method.partition("/")
     chosen = {"grid_step_m": step, "method": base} | ({"fill": fill} if fill else {})
     return reconstruct(scan, ReconstructionConfig.model_validate(chosen)).volume_m3
@@ -663,6 +668,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         " bicm with the configured fill",
     )
     p.add_argument(
+        "--level",
+        action="store_true",
+        help="also every bicm method on the scan leveled first (`calibration.level`), as"
+        " METHOD+level",
+    )
+    p.add_argument(
         "--per-scan",
         action="store_true",
         help="also list every scan's error at each step and its spread (bicm methods)",
@@ -737,6 +748,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.fills and "bicm" in methods:
         at = methods.index("bicm")
         methods[at : at + 1] = [f"bicm/{fill}" for fill in args.fills]
+    if args.level:
+        methods += [f"{m}+level" for m in methods if m.startswith("bicm")]
     start = time.perf_counter()
     rows: list[Row] = []
     with (

@@ -12,6 +12,7 @@ from silo_agent.calibrate import (
     calibrate,
     fit_plane,
     floor_points,
+    level_scan,
     refine,
     with_extrinsics,
 )
@@ -132,3 +133,44 @@ def test_per_scan_refinement_is_bounded() -> None:
     large = render(VIEWS, seed=7, true_poses={"A3": knocked(nominal, 1.0, (1.0, 0.0, 0.0))})
     kept, notes = refine(large, settings)
     assert kept is large and len(notes) == 1 and "beyond refine_max" in notes[0]
+
+
+def test_per_scan_leveling_puts_each_camera_back_on_the_floor(perturbed) -> None:
+    """`calibration.level`: every scan, each camera leveled on the floor it sees. Its height
+    and tilt come back; its yaw and plan position, which a floor cannot show, do not, so the
+    volume comes back to within what they leave (against the scan placed by the true poses)."""
+    scan, truth = perturbed
+    leveled, corrections, notes = level_scan(scan, CalibrationConfig(level=True))
+    assert notes == [] and set(corrections) == set(truth)
+    before = _vertical_error(scan, {c.serial: c.extrinsic for c in scan.cameras}, truth)
+    poses = {c.serial: c.extrinsic for c in leveled.cameras}
+    after = _vertical_error(leveled, poses, truth)
+    for serial in truth:
+        assert before[serial] > 0.005 and after[serial] < 0.001, (before, after)
+        assert _tilt_error_deg(poses[serial], truth[serial]) < 0.06
+        assert 0.1 < corrections[serial][0] < 0.5 and 0.005 < corrections[serial][1] < 0.02
+
+    settings = ReconstructionConfig()
+    reference = reconstruct(replace(scan, cameras=with_extrinsics(scan.cameras, truth)), settings)
+    raw = reconstruct(scan, settings).volume_m3 - reference.volume_m3
+    fixed = reconstruct(leveled, settings).volume_m3 - reference.volume_m3
+    assert abs(fixed) < 0.2 * abs(raw), (raw, fixed)
+
+
+def test_per_scan_leveling_is_bounded_and_wants_bare_flat_floor(perturbed) -> None:
+    scan, _ = perturbed
+    bounded = CalibrationConfig(level=True, refine_max_m=0.005)  # each camera moves ~1 cm
+    kept, corrections, notes = level_scan(scan, bounded)
+    assert kept is scan and corrections == {} and len(notes) == 2
+    assert all("beyond refine_max_*; extrinsic unchanged" in note for note in notes)
+
+    sloping = replace(scan.site, base="boundary")
+    kept, corrections, notes = level_scan(scan, CalibrationConfig(level=True), sloping)
+    assert kept is scan and notes == [
+        "level: the floor is not a flat plane at floor_z; extrinsics unchanged"
+    ]
+
+    covered = simulate(make_scene("crater"), VIEWS, seed=1)  # grain wall to wall: no floor
+    kept, corrections, notes = level_scan(covered, CalibrationConfig(level=True))
+    assert kept is covered and corrections == {}
+    assert notes == [f"level: sim-{v} sees no bare floor; extrinsic unchanged" for v in VIEWS]

@@ -1,5 +1,6 @@
 """One scan path: a scan made by `silo-agent scan` or by the daemon replays identical, with and
-without `[calibration] refine`, and every path keeps the summary the daemon publishes."""
+without `[calibration] refine` or `level`, and every path keeps the summary the daemon
+publishes."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from silo_agent.telemetry.payloads import check_summary
 from tests.support.agent import Daemon, write_config
 
 REFINE = "\n[calibration]\nrefine = true\n"
+PER_SCAN = {"plain": "", "refine": REFINE, "level": "\n[calibration]\nlevel = true\n"}
 
 
 def _replay(directory: Path, capsys: pytest.CaptureFixture) -> str:
@@ -25,17 +27,16 @@ def _replay(directory: Path, capsys: pytest.CaptureFixture) -> str:
 
 
 @pytest.mark.realsense
-@pytest.mark.parametrize("refine", [False, True], ids=["plain", "refine"])
+@pytest.mark.parametrize("per_scan", list(PER_SCAN))
 def test_cli_scan_replays_identical_and_keeps_the_published_shape(
-    tmp_path: Path, capsys: pytest.CaptureFixture, refine: bool
+    tmp_path: Path, capsys: pytest.CaptureFixture, per_scan: str
 ) -> None:
     pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed")
     from tests.support.playback import grain_layer, playback_camera, playback_config
 
     cameras = [playback_camera(s, grain_layer(tmp_path, s)) for s in ("CAM-A", "CAM-B")]
     config = playback_config(tmp_path, "".join(cameras))
-    if refine:
-        config.write_text(config.read_text() + REFINE)
+    config.write_text(config.read_text() + PER_SCAN[per_scan])
     assert main(["scan", "--config", str(config), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     directory = Path(report["scan_dir"])
@@ -44,9 +45,12 @@ def test_cli_scan_replays_identical_and_keeps_the_published_shape(
     check_summary(ScanSummary.from_json(kept))  # what the daemon would publish
     assert kept["cameras"] == {"used": ["CAM-A", "CAM-B"], "failed": []}
     assert kept["degraded"] is False and kept["captured_at"].endswith("Z")
-    assert ("refined" in kept["parameters"]) is refine  # the snapshot's calibration was used
+    # the snapshot's calibration was used
+    assert ("refined" in kept["parameters"]) is (per_scan == "refine")
+    assert ("leveled" in kept["parameters"]) is (per_scan == "level")
     manifest = json.loads((directory / "scan.json").read_text())
-    assert manifest["config"]["calibration"]["refine"] is refine
+    assert manifest["config"]["calibration"]["refine"] is (per_scan == "refine")
+    assert manifest["config"]["calibration"]["level"] is (per_scan == "level")
     assert "replay identical" in _replay(directory, capsys)
 
     # `process` of the same directory goes the same way: the same summary, nothing written

@@ -60,8 +60,9 @@ def analyse(
 ) -> ScanAnalysis:
     """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
 
-    `calibration` sets how the registration residual is measured; with `refine` on, a bounded
-    registration of the overlaps adjusts the scan's extrinsics first (silo_agent.calibrate).
+    `calibration` sets how the registration residual is measured; with `level` on, each camera
+    that sees bare floor is leveled on it first, and with `refine` on, a bounded registration
+    of the overlaps adjusts the scan's extrinsics (silo_agent.calibrate).
 
     Parameters
     ----------
@@ -76,7 +77,7 @@ def analyse(
     previous : sequence of Pile
         The previous scan's piles: a pile that stayed in place keeps its id.
     calibration : CalibrationConfig, optional
-        Residual thresholds and `refine`.
+        Residual thresholds, `level` and `refine`.
     release_points : bool
         The scan's clouds may lose their points once the reconstruction has read them
         (`reconstruct.released`; not with a YOLO model, whose piles read them after).
@@ -101,6 +102,12 @@ def analyse(
         found = locate(YoloModel(onnx.model), scan.cameras, onnx.confidence, onnx.iou)
         robots = robots_of(found, onnx.robot_classes)
     notes: list[str] = []
+    leveled: dict[str, tuple[float, float]] = {}
+    level_notes: list[str] = []
+    if calibration is not None and calibration.level:
+        from silo_agent.calibrate import level_scan
+
+        scan, leveled, level_notes = level_scan(scan, calibration, site)
     if calibration is not None and calibration.refine:
         from silo_agent.calibrate import refine
 
@@ -116,6 +123,12 @@ def analyse(
     if calibration is not None and calibration.refine:
         result.parameters["refined"] = not notes
         result.parameters["refine_notes"] = notes
+    if calibration is not None and calibration.level:
+        result.parameters["leveled"] = {
+            serial: {"turned_deg": degrees, "moved_m": metres}
+            for serial, (degrees, metres) in leveled.items()
+        }
+        result.parameters["level_notes"] = level_notes
     found_robots = robots if onnx is not None else None
     if result.heightmap is None:
         return ScanAnalysis(result, [], found_robots)

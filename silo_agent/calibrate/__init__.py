@@ -24,7 +24,8 @@ that their noise averages) fixes that:
 
 `config_file.py` writes the result back into the site's config. Drift monitoring runs inside
 the daemon and lives with the analysis (`silo_agent.analysis.drift`): the daemon does not
-import this package, except `refine` when `calibration.refine` is on.
+import this package, except `refine` and `level_scan` when `calibration.refine` or
+`calibration.level` is on.
 """
 
 from silo_agent.calibrate.config_file import rewrite_config_text, write_calibrated_config
@@ -34,6 +35,7 @@ from silo_agent.calibrate.pool import pixel_means, pool_scans
 from silo_agent.calibrate.solve import (
     Calibration,
     calibrate,
+    level_scan,
     refine,
     scan_residuals,
     start_poses,
@@ -48,6 +50,7 @@ __all__ = [
     "calibrate",
     "fit_plane",
     "floor_points",
+    "level_scan",
     "pixel_means",
     "pool_scans",
     "refine",

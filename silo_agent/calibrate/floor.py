@@ -110,6 +110,3 @@ def floor_points(
     off = ndimage.binary_dilation(off, iterations=FLOOR_MARGIN_CELLS)
     keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~off.ravel()[flat]
     return pts[keep], point_sigma(cam[keep, 2])
-
-
-# ---------------------------------------------------------------- registration

@@ -76,8 +76,16 @@ class CalibrationConfig(Strict):
     refine: bool = Field(
         default=False, description="every scan: bounded ICP on the overlaps before reconstructing"
     )
-    refine_max_deg: float = Field(default=0.5, gt=0, description="per-scan refinement bound")
-    refine_max_m: float = Field(default=0.02, gt=0, description="per-scan refinement bound")
+    level: bool = Field(
+        default=False,
+        description="every scan: each camera that sees bare floor is leveled on it (as --floor)",
+    )
+    refine_max_deg: float = Field(
+        default=0.5, gt=0, description="per-scan bound of refine's and level's corrections"
+    )
+    refine_max_m: float = Field(
+        default=0.02, gt=0, description="per-scan bound of refine's and level's corrections"
+    )
     spacing: list[SpacingConfig] = Field(
         default=[], description="measured camera-to-camera distances calibrate holds to"
     )
