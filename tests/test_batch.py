@@ -211,7 +211,7 @@ def test_pydantic_plugins_are_off_unless_the_environment_says(
 
 
 def _raw_points_alive_at_the_clustering(
-    monkeypatch: pytest.MonkeyPatch, directory: Path, keep_points: bool
+    monkeypatch: pytest.MonkeyPatch, directory: Path, release_points: bool
 ) -> tuple[list[bool], dict]:
     """`process_directory` of `directory`: whether any raw cloud's points were still alive each
     time the clustering's segments were built (the last time: the reconstruction's peak), and
@@ -238,7 +238,7 @@ def _raw_points_alive_at_the_clustering(
 
     monkeypatch.setattr(scan_path, "read_scan", reading)
     monkeypatch.setattr(reconstruct_module, "height_segments", watched)
-    _scan, _result, summary = scan_path.process_directory(directory, keep_points=keep_points)
+    _scan, _result, summary = scan_path.process_directory(directory, release_points=release_points)
     monkeypatch.undo()
     return alive, {k: v for k, v in summary.to_json().items() if k != "timings_s"}
 
@@ -255,8 +255,8 @@ def test_process_lets_go_of_the_raw_clouds_before_the_clustering(
 
     scan = simulate(make_scene(scene), ["A1", "A5"], seed=0, resolution=(424, 240))
     directory = write_scan(replace(scan, reconstruction={"grid_step_m": 0.05}), tmp_path / "s")
-    kept_alive, kept = _raw_points_alive_at_the_clustering(monkeypatch, directory, True)
-    let_go, released = _raw_points_alive_at_the_clustering(monkeypatch, directory, False)
+    kept_alive, kept = _raw_points_alive_at_the_clustering(monkeypatch, directory, False)
+    let_go, released = _raw_points_alive_at_the_clustering(monkeypatch, directory, True)
     # a bin's first pass (the wall step) clusters too, on the raw clouds: the last is the peak
     assert kept_alive[-1] and not let_go[-1]
     assert released == kept

@@ -76,7 +76,7 @@ def outcome_of(directory: Path, options: Options) -> Processed:
     name = str(directory)
     try:
         _scan, result, summary = process_directory(
-            directory, options.config, options.grid_step, options.method, keep_points=False
+            directory, options.config, options.grid_step, options.method, release_points=True
         )
     except ScanError as exc:  # its message names the file already
         return Processed(name, DATA_ERROR, error=str(exc))

@@ -227,11 +227,11 @@ def process_directory(
     config: Config | None = None,
     grid_step_m: float | None = None,
     method: str | None = None,
-    keep_points: bool = True,
+    release_points: bool = False,
 ) -> tuple[Scan, ScanAnalysis, ScanSummary]:
     """`silo-agent process` of one scan directory: (scan, result, summary); nothing written.
 
-    Without `keep_points` the scan's clouds lose their points once the reconstruction has read
+    With `release_points` the scan's clouds lose their points once the reconstruction has read
     them (`reconstruct.released`): the summary reads none of them, and the raw clouds would
     otherwise live through the reconstruction's peak (a 12 m bin, 8 full-resolution cameras,
     1 cm: 86 MB of 544).
@@ -240,7 +240,7 @@ def process_directory(
     detection model."""
     scan = read_scan(directory)
     analysis = overridden(settings_of(scan), config, grid_step_m, method)
-    result = analyse_with(scan, analysis, [], release_points=not keep_points)
+    result = analyse_with(scan, analysis, [], release_points=release_points)
     return scan, result, summary_of(result, scan, {})
 
 
