@@ -45,6 +45,7 @@ from silo_agent.calibrate import (
     pool_scans,
     with_extrinsics,
 )
+from silo_agent.calibrate.floor import FLOOR_MIN_POINTS
 from silo_agent.config import CalibrationConfig, ReconstructionConfig, SpacingConfig
 from silo_agent.reconstruct import reconstruct
 from silo_agent.scan import Scan
@@ -144,17 +145,20 @@ class Pooled:
 
 def floor_fit_height(scan: Scan, truth: dict, pivot: np.ndarray) -> float:
     """Mean over cameras of the height (mm) at `pivot` of the floor plane `calibrate` fits to
-    the camera's points placed with its *true* extrinsic: the leveling's own noise."""
+    the camera's points placed with its *true* extrinsic: the leveling's own noise (NaN where
+    no camera sees floor: a scene of grain wall to wall)."""
     heights = []
     for camera in scan.cameras:
         found, sigma = floor_points(
             camera, truth[camera.serial], scan.site.floor_z, CalibrationConfig()
         )
+        if len(found) < FLOOR_MIN_POINTS:
+            continue
         normal, centroid = fit_plane(found, 1 / sigma**2)
         heights.append(
             centroid[2] - scan.site.floor_z - normal[:2] @ (pivot - centroid)[:2] / normal[2]
         )
-    return 1000 * float(np.mean(heights))
+    return 1000 * float(np.mean(heights)) if heights else float("nan")
 
 
 def split_errors(
