@@ -530,11 +530,12 @@ def _reconstruct(
     clouds: list[CameraCloud] | None = None,
 ) -> Reconstruction:
     """`reconstruct` on clouds that hold no wall. A bin's `first_pass` skips the cameras'
-    registration residuals and adds the level its points are reseated on (only its heights
-    and that level are read). `clouds`, one per camera of `scan` in its order, are fused in
-    place of the scan's own (a bin's second pass: its clouds without their wall points) and
-    the list is emptied once they are: the fused cloud holds their points, and the clouds
-    would otherwise live through the clustering's peak (8 full-resolution cameras: 66 MB)."""
+    registration residuals and the surface levels, and adds the level its points are reseated
+    on (only its heights and that level are read). `clouds`, one per camera of `scan` in its
+    order, are fused in place of the scan's own (a bin's second pass: its clouds without
+    their wall points) and the list is emptied once they are: the fused cloud holds their
+    points, and the clouds would otherwise live through the clustering's peak (8
+    full-resolution cameras: 66 MB)."""
     clock = _Clock()
     grid = Grid.over(site.region, settings.grid_step_m)
     fused = fuse_and_crop(
@@ -669,6 +670,7 @@ def _reconstruct(
         seen=observed | seen if site.bin is not None else None,
         bin_cells=bin_cells,
         information=information,
+        levels=not first_pass,
     )
     result.points["after_downsampling"] = counts.after_downsampling
     result.registration = registration
@@ -702,11 +704,13 @@ def _result(
     seen: np.ndarray | None = None,
     bin_cells: _BinCells | None = None,
     information: np.ndarray | None = None,
+    levels: bool = True,
 ) -> Reconstruction:
     """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map;
     `seen` (default `observed`): the cells the cameras covered, for the coverage;
     `information` (reconstruct/trust.py): how well each measured cell is known, for a bin's
-    levels."""
+    levels; without `levels` the result has no surface levels (a bin's first pass: nothing
+    reads them)."""
     if bin_cells is None and site.bin is not None:
         bin_cells = _BinCells(grid, site.bin)
     region_area = float(np.sum(grid.inside))
@@ -731,7 +735,7 @@ def _result(
             counted=counted,
             captured_at=scan.captured_at,
         )
-        if np.any(np.isfinite(heights)):
+        if levels and np.any(np.isfinite(heights)):
             if bin_cells is not None and counted is not None:
                 wall = bin_cells.wall_distance
                 surface = grain_levels(
