@@ -114,8 +114,10 @@ def section_silos(runs: int, root: Path, diameters: Sequence[float]) -> list[str
                 if diameter == 20.0 and cameras == 16 and step == 0.01:
                     verdicts.append(
                         f"- 20 m, 16 cameras, 1 cm: peak {peak[0]:.0f} MB (target under"
-                        f" {MEMORY_CAP_MB} MB: {_met(peak[0] < MEMORY_CAP_MB)}), wall"
-                        f" {wall[0]:.2f} s (target <= 10 s on one core: {_met(wall[0] <= 10)})"
+                        f" {MEMORY_CAP_MB} MB: {_met(peak[0] < MEMORY_CAP_MB)}); target <= 10"
+                        f" s on one core: CPU {cpu[0]:.2f} s ({_met(cpu[0] <= 10)}), wall"
+                        f" {wall[0]:.2f} s ({_met(wall[0] <= 10)}; above the CPU time only as"
+                        " far as other work shares the core)"
                     )
         truth_line = f"- {scene.name}: true volume {truth:.2f} m³"
         verdicts.append(truth_line)
@@ -175,15 +177,24 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
     p.add_argument("--diameters", default="12,20", help="comma list of bin diameters (m)")
+    p.add_argument(
+        "--parts",
+        default="a,b",
+        help="which sections: a (the big silos), b (the bay batch) or a,b (default)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench/results/silos.md"))
     args = p.parse_args(argv)
+    parts = set(args.parts.split(","))
+    if not parts or parts - {"a", "b"}:
+        p.error(f"--parts: a, b or a,b, not {args.parts!r}")
     os.sched_setaffinity(0, {args.cpu})
     diameters = [float(d) for d in args.diameters.split(",")]
     load_before = os.getloadavg()
     head = header("Big silos against CloudCompare", f"pinned to CPU {args.cpu}")
     with tempfile.TemporaryDirectory(prefix="silo-silos-") as tmp:
-        lines = section_silos(args.runs, Path(tmp), diameters)
-        lines += section_bay(Path(tmp))
+        lines = section_silos(args.runs, Path(tmp), diameters) if "a" in parts else []
+        if "b" in parts:
+            lines += section_bay(Path(tmp))
     write_report(
         args.out,
         head,
