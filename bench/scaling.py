@@ -34,6 +34,7 @@ from benchlib import (
     bay_scene,
     big_bin,
     big_bin_scan,
+    compile_package,
     header,
     measured,
     resampled,
@@ -306,6 +307,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("bench/results/scaling.md"))
     args = p.parse_args(argv)
     os.sched_setaffinity(0, {args.cpu})
+    compile_package()
     points, cells, cameras = (
         (POINTS[:3], CELLS[:3], CAMERAS[:3]) if args.quick else (POINTS, CELLS, CAMERAS)
     )

@@ -31,6 +31,7 @@ from benchlib import (
     big_bin_scan,
     cloudcompare_command,
     cloudcompare_report_volume,
+    compile_package,
     fused_cloud,
     header,
     measured,
@@ -188,6 +189,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not parts or parts - {"a", "b"}:
         p.error(f"--parts: a, b or a,b, not {args.parts!r}")
     os.sched_setaffinity(0, {args.cpu})
+    compile_package()
     diameters = [float(d) for d in args.diameters.split(",")]
     load_before = os.getloadavg()
     head = header("Big silos against CloudCompare", f"pinned to CPU {args.cpu}")
