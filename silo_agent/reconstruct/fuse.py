@@ -180,14 +180,12 @@ def fuse_and_crop(
     camera_of = np.empty(total, np.uint8)
     cell = np.empty(total, np.int32)  # MAX_GRID_CELLS fits
     used = 0
-    clouds: list[CameraCloud | None] = list(cameras)
+    pending = cameras[::-1]  # taken from the end: each cloud leaves the list as it is read
+    n_clouds = len(pending)
     if consume:
         cameras.clear()
-    for index, cloud in enumerate(clouds):
-        assert cloud is not None
-        silo = cloud.points_in_silo()
-        if consume:
-            clouds[index] = cloud = None
+    for index in range(n_clouds):
+        silo = pending.pop().points_in_silo()
         row, col = grid.cell_index(silo[:, 0], silo[:, 1])
         keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
         if site.ceiling_z is not None:
@@ -202,5 +200,5 @@ def fuse_and_crop(
         used = end
         del silo
     points, camera_of, cell = points[:used], camera_of[:used], cell[:used]
-    moments = CellMoments.of(points, camera_of, cell, rows * cols, len(clouds))
+    moments = CellMoments.of(points, camera_of, cell, rows * cols, n_clouds)
     return FusedCloud(points, camera_of, cell, total, moments)
