@@ -110,3 +110,16 @@ def floor_points(
     off = ndimage.binary_dilation(off, iterations=FLOOR_MARGIN_CELLS)
     keep = (np.abs(height) <= FLOOR_REFINE_DISTANCE_M) & ~off.ravel()[flat]
     return pts[keep], point_sigma(cam[keep, 2])
+
+
+def floor_leveled(
+    camera: CameraCloud, extrinsic: np.ndarray, floor_z: float, settings: CalibrationConfig
+) -> tuple[np.ndarray | None, int]:
+    """`extrinsic` leveled on the floor the camera sees (`floor_points`, a weighted
+    `fit_plane`, `level_on_plane`) and how many floor points set it; None for the pose when
+    they are fewer than FLOOR_MIN_POINTS (the camera does not see the floor)."""
+    found, sigma = floor_points(camera, extrinsic, floor_z, settings)
+    if len(found) < FLOOR_MIN_POINTS:
+        return None, len(found)
+    normal, centroid = fit_plane(found, 1 / sigma**2)
+    return level_on_plane(extrinsic, normal, centroid, floor_z), len(found)

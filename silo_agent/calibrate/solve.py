@@ -11,7 +11,7 @@ from typing import Any, Literal
 import numpy as np
 
 from silo_agent.calibrate.errors import CalibrationError, SerialMismatch
-from silo_agent.calibrate.floor import FLOOR_MIN_POINTS, fit_plane, floor_points, level_on_plane
+from silo_agent.calibrate.floor import floor_leveled
 from silo_agent.calibrate.register import PairRegistration, register
 from silo_agent.calibrate.rigid import UP, about, planar_procrustes, pose_change, rotation_between
 from silo_agent.config import CalibrationConfig, Config, SpacingConfig
@@ -222,16 +222,14 @@ def calibrate(
     counts: dict[str, int] = {s: 0 for s in poses}
     if floor:
         for c in cameras:
-            found, sigma = floor_points(c, poses[c.serial], site.floor_z, settings)
-            counts[c.serial] = len(found)
-            if len(found) < FLOOR_MIN_POINTS:
+            pose, counts[c.serial] = floor_leveled(c, poses[c.serial], site.floor_z, settings)
+            if pose is None:
                 notes.append(
                     f"{c.serial}: sees no floor (z = {site.floor_z:g}) within "
                     f"{settings.floor_max_range_m:g} m; not leveled by the floor"
                 )
                 continue
-            normal, centroid = fit_plane(found, 1 / sigma**2)
-            poses[c.serial] = level_on_plane(poses[c.serial], normal, centroid, site.floor_z)
+            poses[c.serial] = pose
             leveled[c.serial] = "floor"
 
     # 2. relative registration (yaw and plan position only, where the floor leveled)
@@ -388,7 +386,7 @@ def level_scan(
     scan: Scan, settings: CalibrationConfig, site: Site | None = None
 ) -> tuple[Scan, dict[str, tuple[float, float]], list[str]]:
     """Per-scan leveling (`calibration.level`): every camera that sees bare floor is leveled
-    on it as `calibrate --floor` levels it (`floor_points`, `fit_plane`, `level_on_plane`).
+    on it as `calibrate --floor` levels it (`floor_leveled`).
 
     Why: a camera's height and tilt errors bias the whole floor it sees (0.1 deg and 3 mm per
     camera made the accuracy bench's four-view scans 1.5 % off, against 0.3 % placed exactly),
@@ -405,12 +403,10 @@ def level_scan(
     corrections: dict[str, tuple[float, float]] = {}
     notes = []
     for camera in scan.cameras:
-        found, sigma = floor_points(camera, camera.extrinsic, site.floor_z, settings)
-        if len(found) < FLOOR_MIN_POINTS:
+        leveled, _ = floor_leveled(camera, camera.extrinsic, site.floor_z, settings)
+        if leveled is None:
             notes.append(f"level: {camera.serial} sees no bare floor; extrinsic unchanged")
             continue
-        normal, centroid = fit_plane(found, 1 / sigma**2)
-        leveled = level_on_plane(camera.extrinsic, normal, centroid, site.floor_z)
         degrees, metres = pose_change(camera.extrinsic, leveled)
         if degrees > settings.refine_max_deg or metres > settings.refine_max_m:
             notes.append(
