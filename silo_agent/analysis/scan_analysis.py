@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
@@ -101,17 +101,7 @@ def analyse(
 
         found = locate(YoloModel(onnx.model), scan.cameras, onnx.confidence, onnx.iou)
         robots = robots_of(found, onnx.robot_classes)
-    notes: list[str] = []
-    leveled: dict[str, tuple[float, float]] = {}
-    level_notes: list[str] = []
-    if calibration is not None and calibration.level:
-        from silo_agent.calibrate import level_scan
-
-        scan, leveled, level_notes = level_scan(scan, calibration, site)
-    if calibration is not None and calibration.refine:
-        from silo_agent.calibrate import refine
-
-        scan, notes = refine(scan, calibration, site)
+    scan, adjusted = _per_scan_calibration(scan, calibration, site)
     result = reconstruct(
         scan,
         settings,
@@ -120,15 +110,7 @@ def analyse(
         calibration=calibration,
         release_points=release_points and onnx is None,
     )
-    if calibration is not None and calibration.refine:
-        result.parameters["refined"] = not notes
-        result.parameters["refine_notes"] = notes
-    if calibration is not None and calibration.level:
-        result.parameters["leveled"] = {
-            serial: {"turned_deg": degrees, "moved_m": metres}
-            for serial, (degrees, metres) in leveled.items()
-        }
-        result.parameters["level_notes"] = level_notes
+    result.parameters |= adjusted
     found_robots = robots if onnx is not None else None
     if result.heightmap is None:
         return ScanAnalysis(result, [], found_robots)
@@ -145,3 +127,29 @@ def analyse(
     return ScanAnalysis(
         result, match_ids(previous, piles, detection.match_distance_m), found_robots
     )
+
+
+def _per_scan_calibration(
+    scan: Scan, calibration: CalibrationConfig | None, site: Site
+) -> tuple[Scan, dict[str, Any]]:
+    """`scan` leveled on the floor (`calibration.level`), then refined on its overlaps
+    (`calibration.refine`), as configured; and what each did, for the result's parameters."""
+    said: dict[str, Any] = {}
+    if calibration is None:
+        return scan, said
+    if calibration.level:
+        from silo_agent.calibrate import level_scan
+
+        scan, leveled, notes = level_scan(scan, calibration, site)
+        said["leveled"] = {
+            serial: {"turned_deg": degrees, "moved_m": metres}
+            for serial, (degrees, metres) in leveled.items()
+        }
+        said["level_notes"] = notes
+    if calibration.refine:
+        from silo_agent.calibrate import refine
+
+        scan, notes = refine(scan, calibration, site)
+        said["refined"] = not notes
+        said["refine_notes"] = notes
+    return scan, said

@@ -270,10 +270,9 @@ class Surface:
             centroid = (float(np.mean(xs[cells])), float(np.mean(ys[cells])))
         top = np.where(cells, np.nan_to_num(surface, nan=-np.inf), -np.inf)
         row, col = (int(i) for i in np.unravel_index(int(np.argmax(top)), top.shape))
-        if box is not None and np.max(top) > -np.inf:  # else the map's first cell, as unboxed
-            row, col = row + box[0].start, col + box[1].start
-        elif box is not None:
-            row, col = 0, 0
+        if box is not None:  # back on the map; no surface at all: its first cell, as unboxed
+            found = np.max(top) > -np.inf
+            row, col = (row + box[0].start, col + box[1].start) if found else (0, 0)
         peak = row, col
         area = of(self.heightmap.inside) * self.heightmap.step**2
         return Pile(

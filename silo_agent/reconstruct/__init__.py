@@ -229,18 +229,21 @@ def _trusted_cells(
         inside = np.repeat(np.repeat(inside, m, axis=0), m, axis=1)
         counts = sub_counts
     step = grid.step / m
+
+    def blocks(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Points, area (cells inside) and whether seen, per block of k x k cells."""
+        points = block_sums(counts.astype(np.float64), k)
+        area = block_sums(inside.astype(np.float64), k)
+        return points, area, block_sums(seen.astype(np.float64), k) > 0
+
     k = max(1, round(TRUST_BLOCK_M / step))
-    points = block_sums(counts.astype(np.float64), k)
-    area = block_sums(inside.astype(np.float64), k)
-    seen_blocks = block_sums(seen.astype(np.float64), k) > 0
+    points, area, seen_blocks = blocks(k)
     if np.any(seen_blocks):  # wider blocks if the typical one holds too few points to judge
         typical = float(np.median(points[seen_blocks] / area[seen_blocks]))  # points a cell
         wide = round(np.sqrt(TRUST_POINTS / max(typical, 1e-12)))
         if wide > k:
             k = wide
-            points = block_sums(counts.astype(np.float64), k)
-            area = block_sums(inside.astype(np.float64), k)
-            seen_blocks = block_sums(seen.astype(np.float64), k) > 0
+            points, area, seen_blocks = blocks(k)
     band = max(1, round(EDGE_BAND_M / (k * step)))
     near_hole = dilate_cross(~seen_blocks & (area > 0), band)
     with np.errstate(invalid="ignore", divide="ignore"):
