@@ -26,3 +26,21 @@ def test_runtime_module_does_not_load_calibrate(module: str) -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]", f"{module} loads {done.stdout.strip()}"
+
+
+def test_process_leaves_numpy_developer_modules_unloaded_until_used() -> None:
+    """`process` loads scipy without numpy.testing and numpy.f2py (and the standard library
+    modules they pull in); a module that does use one still gets the real thing."""
+    code = (
+        "import sys\n"
+        "from silo_agent.cli.common import numpy_unused_lazily\n"
+        "numpy_unused_lazily()\n"
+        "import scipy.ndimage, scipy.sparse.linalg\n"
+        "print(sorted({'unittest', 'numpy.f2py.crackfortran'} & set(sys.modules)))\n"
+        "import numpy.testing\n"
+        "numpy.testing.assert_equal(1, 1)\n"
+        "print(sys.modules['numpy.testing'].assert_equal.__module__)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["[]", "numpy.testing._private.utils"]

@@ -26,6 +26,37 @@ def load_config(path: Path, service: bool = False) -> Config:
     return load(path, service=service)
 
 
+# numpy's tools for developers and its compatibility modules, which nothing the agent runs uses
+NUMPY_UNUSED = ("testing", "f2py", "ctypeslib", "polynomial", "ma", "char", "rec", "strings")
+
+
+def numpy_unused_lazily() -> None:
+    """Make numpy's modules in NUMPY_UNUSED load on first use, not at start-up. scipy's
+    array-API layer (every scipy subpackage imports it) looks up each of numpy's names at its
+    import, which loads them all: numpy.testing (unittest, difflib, subprocess) and numpy.f2py
+    (its Fortran parser) among them, about 0.06 s of a one-off `process` for modules it never
+    reads. Stand-ins that load themselves on their first attribute access
+    (importlib.util.LazyLoader) take their place in sys.modules and on numpy; any code that
+    does use one gets the real module then. Modules already imported are left alone."""
+    import importlib.util
+
+    import numpy
+
+    for name in NUMPY_UNUSED:
+        full = f"numpy.{name}"
+        if full in sys.modules:
+            continue
+        spec = importlib.util.find_spec(full)
+        if spec is None or spec.loader is None:
+            continue
+        loader = importlib.util.LazyLoader(spec.loader)
+        spec.loader = loader
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[full] = module
+        loader.exec_module(module)
+        setattr(numpy, name, module)
+
+
 def configure_logging(args: argparse.Namespace) -> None:
     """structlog set up for the command's --log-level (structlog loads here, not at start)."""
     from silo_agent.base.log import configure_logging as configure
