@@ -33,11 +33,21 @@ def test_camera_pairs_number_the_pairs_that_occur_in_group_then_camera_order(n_c
     np.testing.assert_array_equal(pairs.of_element, inverse)
 
 
+@pytest.mark.parametrize("camera_major", [True, False])
 @pytest.mark.parametrize("n_cams", [2, 8, 12])
-def test_moments_are_the_dense_per_camera_bincounts_to_the_bit(n_cams: int) -> None:
+def test_moments_are_the_dense_per_camera_bincounts_to_the_bit(
+    n_cams: int, camera_major: bool
+) -> None:
     n_cells = 400
     points, camera, cell = _cloud(n_cams, n_cells, 30_000)
+    if not camera_major:  # a voxel-downsampled cloud's order
+        shuffle = np.random.default_rng(n_cams).permutation(len(camera))
+        points, camera, cell = points[shuffle], camera[shuffle], cell[shuffle]
     moments = CellMoments.of(points, camera, cell, n_cells, n_cams)
+    # the pairs come camera by camera, each camera's cells ascending
+    np.testing.assert_array_equal(
+        np.lexsort((moments.cell, moments.camera)), np.arange(len(moments.cell))
+    )
     dense = np.zeros((5, n_cams, n_cells))
     for k in range(n_cams):  # the former layout: one row per camera, one bincount each
         mine = camera == k

@@ -101,6 +101,9 @@ def registration_residuals(
     # a camera's cell is a surface seen from above, not a wall or post standing in it
     seen = np.flatnonzero((count >= min_points) & (spread <= MAX_SPREAD_M))
     del spread
+    # in (cell, camera) order: the moments' pairs come camera by camera, and a stable sort by
+    # cell merges the cameras' ascending runs with each cell's cameras kept in order
+    seen = seen[np.argsort(moments.cell[seen], kind="stable")]
     cell = moments.cell[seen]
     cameras_seeing = np.bincount(cell, minlength=rows * cols)
     most = int(cameras_seeing.max()) if len(cameras_seeing) else 0

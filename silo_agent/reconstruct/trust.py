@@ -35,7 +35,7 @@ class _Sightlines:
     barely moves these)."""
 
     cloud: CameraCloud
-    pairs: np.ndarray  # indices into the moments' pairs
+    pairs: slice  # the camera's pairs among the moments
     cell: np.ndarray  # flat cell index
     row: np.ndarray
     col: np.ndarray
@@ -54,9 +54,8 @@ def _sightlines(
     float64 temporaries to hundreds of MB."""
     step, (x0, y0) = grid.step, grid.origin
     cols = grid.shape[1]
-    for index, cloud in enumerate(cameras):
-        pairs = np.flatnonzero(moments.camera == index)
-        if len(pairs) == 0:
+    for cloud, pairs in zip(cameras, moments.camera_slices(), strict=False):
+        if pairs.start == pairs.stop:
             continue
         cell = moments.cell[pairs]
         ox, oy, oz = cloud.extrinsic[:3, 3]
