@@ -223,21 +223,23 @@ def _clusters(
     del core
     bin_width = segments.bin_width_m
     gap_bins = max(1, int(np.ceil(eps_m / bin_width)))
+    core_key, core_cell = b_key[c_bin], b_cell[c_bin]  # gathered once, read three times
+    del b_key
     new_cluster = np.ones(len(c_bin), dtype=bool)
-    new_cluster[1:] = (b_cell[c_bin[1:]] != b_cell[c_bin[:-1]]) | (
-        b_key[c_bin[1:]] - b_key[c_bin[:-1]] > gap_bins
-    )
+    new_cluster[1:] = (core_cell[1:] != core_cell[:-1]) | (core_key[1:] - core_key[:-1] > gap_bins)
     cluster_of_core_bin = np.cumsum(new_cluster) - 1
-    n_clusters = int(new_cluster.sum())
+    first = np.flatnonzero(new_cluster)  # each cluster's lowest bin, among the core bins
+    del new_cluster
+    n_clusters = len(first)
     # a surface is thin: a cluster taller than a double surface is something standing on the
     # grain (a wall seen through depth noise, a post) and only its lowest part is grain
-    bottom = b_key[c_bin[new_cluster]][cluster_of_core_bin]
-    thin = b_key[c_bin] - bottom <= double_surface / bin_width
-    bin_cluster = np.full(len(b_key), -1, dtype=np.int32)  # clusters <= points
+    bottom = core_key[first][cluster_of_core_bin]
+    thin = core_key - bottom <= double_surface / bin_width
+    bin_cluster = np.full(len(b_cell), -1, dtype=np.int32)  # clusters <= points
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
-    c_cell = b_cell[c_bin[new_cluster]]
+    c_cell = core_cell[first]
     # the bins' arrays go before the segments' are made: this is the clustering's peak
-    del b_key, b_cell, c_bin, thin, bottom, cluster_of_core_bin, new_cluster
+    del b_cell, c_bin, thin, bottom, cluster_of_core_bin, first, core_key, core_cell
     bin_of_segment = np.zeros(len(s_bin), dtype=np.int32)
     bin_of_segment[b_start[1:]] = 1
     del b_start
@@ -261,7 +263,7 @@ def _clusters(
     # bincount reads intp: cast once each (and drop what is read) rather than once a call
     element, pair_cluster = pairs.of_element.astype(np.intp), pairs.group.astype(np.intp)
     del pairs
-    m_n = s_n[member]
+    m_n = s_n[member]  # gathered again, not held through the pairs' numbering (its peak)
     pair_mean = np.bincount(element, segments.z_sum[member], size) / np.bincount(element, m_n, size)
     del element, member, m_n
     c_z = segments.z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
