@@ -173,7 +173,9 @@ def _segments(
     key.sort(kind=None if SIMD_SORT else "stable")
     segment_key = key >> bin_bits
     s_start = run_starts(segment_key)
-    s_n = np.diff(np.append(s_start, len(key))).astype(np.int32)
+    s_n = np.empty(len(s_start), np.int32)  # the runs' lengths, written as int32 at once
+    np.subtract(s_start[1:], s_start[:-1], out=s_n[:-1], casting="unsafe")
+    s_n[-1:] = len(key) - s_start[-1:]
     key &= fine_mask
     s_fine = np.add.reduceat(key, s_start)  # heights within the bin, summed
     del key
