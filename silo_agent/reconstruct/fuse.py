@@ -3,6 +3,7 @@ and the per-camera cell moments the residual and the clustered means share."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -184,12 +185,18 @@ class CellMoments:
         bounds = np.searchsorted(self.camera, np.arange(self.n_cams + 1)).tolist()
         return [slice(lo, hi) for lo, hi in itertools.pairwise(bounds)]
 
+    @functools.cached_property
+    def _cell_index(self) -> np.ndarray:
+        """The pairs' cells as bincount reads them (intp): cast once, not at every per_cell
+        (2.8 M pairs, 3 ms a cast)."""
+        return self.cell.astype(np.intp)
+
     def per_cell(self, values: np.ndarray) -> np.ndarray:
         """`values` of the pairs summed over each cell's cameras, dense over all cells (0 where
         none). A bincount adds them one after another in camera order, as the sum down the
         cameras of a dense camera x cell array did, to the bit (a reduceat sums eight or more
         values pairwise, which rounds differently)."""
-        total = np.bincount(self.cell, values, self.n_cells)
+        total = np.bincount(self._cell_index, values, self.n_cells)
         return total.astype(np.int64) if values.dtype.kind in "iu" else total
 
 
