@@ -16,7 +16,7 @@ is known to ~1 cm; at 10 m, from the far side of a 10 m bin, a 1 m disc only to 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,6 +69,14 @@ def _sightlines(
         yield _Sightlines(cloud, pairs, cell, row, col, focal, across_x, across_y, drop, reach)
 
 
+def _where_not_all(mask: np.ndarray) -> Callable[[np.ndarray, float], np.ndarray]:
+    """`np.where(mask, values, other)` as a function of (values, other); the values themselves
+    where `mask` holds everywhere."""
+    if np.all(mask):
+        return lambda values, _other: values
+    return lambda values, other: np.where(mask, values, other)
+
+
 def cell_information(
     grid: Grid, moments: CellMoments, cameras: list[CameraCloud], noise_factor: float
 ) -> np.ndarray:
@@ -90,16 +98,19 @@ def cell_information(
         ax, ay, az = seen.cloud.extrinsic[:3, 2]
         depth = seen.across_x * ax + seen.across_y * ay - seen.drop * az
         usable = np.isfinite(seen.drop) & (depth > 0) & (seen.drop > 0)
-        depth, reach, drop = (np.where(usable, a, 1.0) for a in (depth, seen.reach, seen.drop))
+        # where the camera's every cell is usable (a bin's eave camera: all of them), the
+        # masks below would copy each array as it is
+        masked = _where_not_all(usable)
+        depth, reach, drop = (masked(a, 1.0) for a in (depth, seen.reach, seen.drop))
         rms_v = depth_rms_m(depth, focal, noise_factor) * drop / depth  # vertical, per pixel
         pixel_area = np.square(reach / focal) * reach / drop  # a pixel's footprint on the ground
         variance_area = np.square(rms_v) * pixel_area * share
         if factor < 2:
             covered = np.minimum(1.0, moments.count[pairs] * pixel_area / grid.cell_area)
-            contribution = np.where(usable, covered / variance_area, 0.0)
+            contribution = masked(covered / variance_area, 0.0)
         else:  # a point informs its pixel's footprint, not just the cell it fell in
-            block = (row // factor) * block_cols + col // factor
-            footprint = np.where(usable, moments.count[pairs] * pixel_area, 0.0)
+            block = ((row // factor) * block_cols + col // factor).astype(np.intp)  # cast once
+            footprint = masked(moments.count[pairs] * pixel_area, 0.0)
             area = np.bincount(block, footprint)
             with np.errstate(invalid="ignore", divide="ignore"):
                 per_area = np.bincount(block, footprint / variance_area) / area
@@ -108,7 +119,7 @@ def cell_information(
                 # the block's information, shared by the camera's cells in it (their mean
                 # over the block's factor^2 cells is the block's)
                 spread = covered * per_area * factor * factor / cells
-            contribution = np.where(usable, spread[block], 0.0)
+            contribution = masked(spread[block], 0.0)
         # a camera has one pair a cell: a fancy-indexed add is right, and adds what a dense
         # bincount added to every cell (a 4 M-cell array a camera, 1 cm over a 20 m bin)
         information[cell] += contribution
