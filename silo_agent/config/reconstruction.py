@@ -49,8 +49,7 @@ class ReconstructionConfig(Strict):
         default=2.5,
         gt=0,
         description="the cameras' depth RMS over the D455's ideal-target figure; sets how near "
-        "the wall a point is left out while the grain height at the wall is found, and outside "
-        "a bin how far under the base the volume's smoothed floor is taken for noise",
+        "the wall a point is left out while the grain height at the wall is found",
     )
     min_coverage: float = Field(default=0.3, ge=0, le=1)
     alpha_m: float | None = Field(

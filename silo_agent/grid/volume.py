@@ -142,39 +142,16 @@ def denoised_columns(
     return counted_columns(grid, counted_heights(grid, heights, base, scale_m))
 
 
-NOISE_CLIP_SIGMAS = 3.0  # the smooth part is noise within this many of its sigmas of the base
-OFFSET_SCALE = 10.0  # the bare floor's level around a cell: its mean over this x the smoothing
-OFFSET_SIGMAS = 0.15  # ... a level under the base by this x the smooth part's sigma: an offset
-
-
 def counted_heights(
-    grid: Grid,
-    heights: np.ndarray,
-    base: np.ndarray,
-    scale_m: float,
-    information: np.ndarray | None = None,
+    grid: Grid, heights: np.ndarray, base: np.ndarray, scale_m: float
 ) -> np.ndarray:
     """Per cell, the height above `base` that the volume counts; NaN where there is no surface.
 
     Clipping each noisy cell at the base turns zero-mean sensor noise on a bare floor into a
     positive volume (about 0.4 sigma per cell). Here the surface is split into a smooth part
-    (about Gaussian, `scale_m`) and the detail; the detail is summed signed, the smooth part
-    clipped at the base: counted = max(smooth, 0) + (height - base - smooth). Real areas below
-    the base survive smoothing and are still excluded.
-
-    With `information` (the cameras' noise model) the smooth part is also summed signed where
-    it is noise on a floor at the base: the smooth part keeps some noise (sigma from the
-    information, `_smooth_sigma`), and clipping it made 0.4 of that sigma a cell of volume on
-    bare floor (+0.6-1.9 % on a 5 m bay with wall cameras). It is noise where it lies
-    within NOISE_CLIP_SIGMAS sigma of the base (further down: a pit, counted 0) and the bare
-    floor around it, its information-weighted mean over OFFSET_SCALE x `scale_m` (cells within
-    those sigmas), is not under the base by more than OFFSET_SIGMAS sigma: a floor that reads
-    low over metres (a camera's calibration off by 0.1 deg / 3 mm, a floor set a few mm too
-    high) is an offset, not noise, and is clipped at the base as before (summed signed it
-    costs the offset a cell, clipped 0.4 sigma at most; these break even near 0.28 sigma, and
-    0.15 is what the accuracy bench's calibration errors bear). Filled cells carry no
-    measurement and no noise (information 0): a smooth part made only of fill is clipped at
-    the base as before.
+    (about Gaussian, `scale_m`) and the detail; only the smooth part is clipped, the detail is
+    summed signed: counted = max(smooth, 0) + (height - base - smooth). Real areas below the
+    base survive smoothing and are still excluded; noise cancels.
 
     Parameters
     ----------
@@ -186,10 +163,6 @@ def counted_heights(
         Height of the base under each cell (`base_surface`).
     scale_m : float
         Scale of the smooth part (the smoothing's sigma, metres; at least one cell).
-    information : ndarray, shape grid.shape, optional
-        Per measured cell, the information density of its height (1 / (m^2 x m^2),
-        reconstruct/trust.py `cell_information`), 0 on filled cells; None: no noise model,
-        the smooth part is clipped at the base everywhere.
 
     Returns
     -------
@@ -199,61 +172,10 @@ def counted_heights(
     """
     region = (grid.inside > 0) & np.isfinite(heights)
     relative = np.where(region, heights - base, 0.0)
-    cells = max(scale_m / grid.step, 1.0)
-    smooth = masked_smooth(relative, region, cells)
+    smooth = masked_smooth(relative, region, max(scale_m / grid.step, 1.0))
     smooth = np.where(region, smooth, 0.0)
-    kept = np.maximum(smooth, 0.0)
-    if information is not None:
-        sigma = _smooth_sigma(grid, information, region, cells)
-        near = np.abs(smooth) <= NOISE_CLIP_SIGMAS * sigma
-        floor = _floor_level(relative, np.where(region & near, information, 0.0), cells)
-        with np.errstate(invalid="ignore"):
-            noise = near & ~(floor < -OFFSET_SIGMAS * sigma)
-        kept = np.where(noise, smooth, kept)
-    counted = kept + (relative - smooth)
+    counted = np.maximum(smooth, 0.0) + (relative - smooth)
     return np.where(region, counted, np.nan)
-
-
-def _block_smooth(layers: list[np.ndarray], sigma_cells: float) -> list[np.ndarray]:
-    """Each layer's kernel-weighted mean: `masked_smooth`'s two box passes (about a Gaussian of
-    `sigma_cells`), zero outside the grid. On blocks of a quarter of the scale (the kernel
-    still 4+ blocks wide, noise levels and a floor's level change over it), each block's mean
-    given back to its cells: on a 1 cm grid they cost a 25th or less."""
-    block = max(1, int(sigma_cells // 4))
-    coarse = np.stack([block_sums(layer, block) for layer in layers]).astype(np.float32)
-    size = max(3, 2 * round(sigma_cells / block * np.sqrt(6) / 2) + 1)
-    for _ in range(2):
-        coarse = ndimage.uniform_filter(coarse, size, mode="constant", axes=(-2, -1))
-    rows, cols = layers[0].shape
-    fine = np.repeat(np.repeat(coarse / block**2, block, axis=1), block, axis=2)
-    return list(fine[:, :rows, :cols].astype(np.float64))
-
-
-def _smooth_sigma(
-    grid: Grid, information: np.ndarray, region: np.ndarray, sigma_cells: float
-) -> np.ndarray:
-    """Per cell, the noise sigma of `masked_smooth`'s mean at `sigma_cells` over `region`.
-
-    A cell with information density I has noise variance v = 1 / (cell area x I) (0 where
-    I = 0: filled); the mean's variance is sum(w^2 v) / sum(w)^2 over the kernel's weights w on
-    the region, taken as share x sum(w v) / sum(w)^2 (`_kernel_share`: exact for v even over
-    the kernel, and where the region cuts it symmetrically: half a kernel at an edge doubles
-    the variance, a quarter in a corner quadruples it)."""
-    measured = region & (information > 0)
-    variance = np.zeros(region.shape)
-    variance[measured] = 1.0 / (grid.cell_area * information[measured])
-    weight, total = _block_smooth([region.astype(np.float64), variance], sigma_cells)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        spread = _kernel_share(sigma_cells) * total / np.square(weight)
-    return np.where(region & (weight > 1e-12), np.sqrt(np.maximum(spread, 0.0)), 0.0)
-
-
-def _floor_level(relative: np.ndarray, weight: np.ndarray, sigma_cells: float) -> np.ndarray:
-    """Per cell, the `weight`-weighted mean of `relative` over OFFSET_SCALE x `sigma_cells`
-    (NaN where no weight reaches): the level of the bare floor around it."""
-    total, moment = _block_smooth([weight, weight * relative], OFFSET_SCALE * sigma_cells)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(total > 0, moment / total, np.nan)
 
 
 def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:

@@ -585,12 +585,6 @@ def _reconstruct(
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
         if first_pass:  # how wide its cameras' noise blobs are, for the reseat level
             blob = blob_scale(grid, moments, scan.cameras)
-    # outside a bin, for the volume's clip at the base (`counted_heights`), if every camera's
-    # intrinsics give the noise model. A bin's clip stays at the base: its bare steel reads
-    # ~0.5 cm low from 8-10 m, and summed signed there hopper-low read 0.2-0.6 pp lower
-    noise = None
-    if site.bin is None and all(cloud.intrinsics for cloud in scan.cameras):
-        noise = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
@@ -658,10 +652,9 @@ def _reconstruct(
         heights = np.where(~observed & (heights < base), base, heights)
     else:
         base = base_surface(grid, heights, site.base, site.floor_z)
-    scale_m = BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
-    noise = None if noise is None else np.where(observed, noise, 0.0)  # filled cells: none
-    counted = counted_heights(grid, heights, base, scale_m, noise)
-    del noise
+    counted = counted_heights(
+        grid, heights, base, BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
+    )
     volume = integrate_counted(grid, counted)
     clock.lap("volume")
     result = _result(
