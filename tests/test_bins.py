@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 import silo_agent.reconstruct.walls as walls
 from silo_agent.analysis.summary import ScanSummary
@@ -236,6 +237,39 @@ def test_wall_crossings_in_chunks_are_the_whole_clouds(monkeypatch: pytest.Monke
     assert np.array_equal(chunked.cell, walls._cell_of(shape, grid, wall_x, wall_y))
     assert np.array_equal(chunked.wall_z, wall_z.astype(np.float32))
     assert np.array_equal(clear, whole_clear)
+
+
+def test_smoothed_depth_is_the_float64_images_mean_disparity() -> None:
+    """Each point's pixel and disparity taken in float32 are float64's: the smoothed depth is
+    that of the image built in float64 (x / z * fx + ppx rounded, 1 / z), filtered by scipy, to
+    the bit; points off the image or at z <= 0 keep their depth."""
+    cloud, _ = _wall_camera()
+    points = cloud.points.copy()
+    points[::97, 2] = 0.0
+    points[1::97, 2] = -1.0
+    points[2::97, 0] *= 40.3  # off the image
+    points[3::97, :2] *= 1.37  # between pixel centres
+    cloud = replace(cloud, points=points)
+    k = cloud.intrinsics
+    assert k is not None
+    width, height = int(k["width"]), int(k["height"])
+    z = points[:, 2].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint(points[:, 0] / z * k["fx"] + k["ppx"])
+        v = np.rint(points[:, 1] / z * k["fy"] + k["ppy"])
+    on = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    pixel = (v[on] * width + u[on]).astype(np.intp)
+    planes = np.zeros((2, height * width), np.float32)
+    planes[0, pixel] = 1.0 / z[on]
+    planes[1, pixel] = 1.0
+    size = max(3, 2 * round(walls.SMOOTHING_PX_AT_848 * width / 848 / 2) + 1)
+    total, count = ndimage.uniform_filter(
+        planes.reshape(2, height, width), size=(1, size, size), mode="constant"
+    )
+    expected = z.copy()
+    expected[on] = np.divide(count.ravel()[pixel], total.ravel()[pixel], dtype=np.float64)
+    assert 0 < on.sum() < len(z)
+    assert np.array_equal(walls.smoothed_depth(cloud), expected)
 
 
 def test_the_wall_test_is_the_exact_heights_though_they_are_kept_rounded() -> None:
