@@ -44,7 +44,7 @@ from silo_agent.reconstruct.cells import (
 )
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
-from silo_agent.reconstruct.residual import PairResidual, registration_residuals
+from silo_agent.reconstruct.residual import PairResidual, median, registration_residuals
 from silo_agent.reconstruct.trust import blob_scale, cell_information
 from silo_agent.reconstruct.walls import (
     FirstSurface,
@@ -239,7 +239,7 @@ def _trusted_cells(
     k = max(1, round(TRUST_BLOCK_M / step))
     points, area, seen_blocks = blocks(k)
     if np.any(seen_blocks):  # wider blocks if the typical one holds too few points to judge
-        typical = float(np.median(points[seen_blocks] / area[seen_blocks]))  # points a cell
+        typical = median(points[seen_blocks] / area[seen_blocks])  # points a cell
         wide = round(np.sqrt(TRUST_POINTS / max(typical, 1e-12)))
         if wide > k:
             k = wide
