@@ -490,26 +490,31 @@ def reseated(cloud: CameraCloud, first: FirstSurface, noise_factor: float) -> Ca
     focal = float(cloud.intrinsics["fx"]) if cloud.intrinsics else 1.0
     n = len(cloud.points)
     points = np.empty((n, 3), np.float32)
+    at = origin[:, None]
     for start in range(0, n, CHUNK_POINTS):  # point by point: a chunk's temporaries stay in cache
         rows = slice(start, start + CHUNK_POINTS)
-        silo = cloud.points_in_silo(rows).astype(np.float64)
+        # the coordinates as rows (3, N), not columns: an (N, 3) array's arithmetic with a
+        # column or a row broadcast runs numpy's inner loop three values at a time (7-9x the
+        # time of a flat one); the same values, the rays' product with R as before
+        silo = cloud.points_in_silo(rows).T.astype(np.float64, order="C")
         depth = cloud.points[rows, 2].astype(np.float64)
-        level, slope_x, slope_y = _surface_at(first, silo[:, 0], silo[:, 1])
+        level, slope_x, slope_y = _surface_at(first, silo[0], silo[1])
         with np.errstate(divide="ignore", invalid="ignore"):  # in place, each value as written
-            ray = silo - origin
-            ray /= depth[:, None]  # silo-frame ray per unit of camera depth
-            rise = slope_x * ray[:, 0]
-            rise += slope_y * ray[:, 1]  # surface rise per unit depth
-            fall = rise - ray[:, 2]  # how fast the ray closes on the surface
-            shift = silo[:, 2] - level
+            ray = silo - at
+            ray /= depth  # silo-frame ray per unit of camera depth
+            rise = slope_x * ray[0]
+            rise += slope_y * ray[1]  # surface rise per unit depth
+            fall = rise - ray[2]  # how fast the ray closes on the surface
+            shift = silo[2] - level
             shift /= fall  # along the ray to the first surface
         bound = RESEAT_MAX_SIGMAS * depth_rms_m(depth, focal, noise_factor)
         usable = np.isfinite(shift) & (fall > RESEAT_MIN_FALL) & (depth > 0)
         shift = np.where(usable, np.clip(shift, -bound, bound), 0.0)
         moved = ray
-        moved *= shift[:, None]
+        moved *= shift
         moved += silo
-        moved[:, 2] = silo[:, 2] + shift * rise
-        moved -= origin
-        points[rows] = moved @ rotation  # back to the camera frame: R^T (p - o), row-wise
+        moved[2] = silo[2] + shift * rise
+        moved -= at
+        # back to the camera frame: R^T (p - o), row-wise, on (N, 3) rows as before
+        points[rows] = np.ascontiguousarray(moved.T) @ rotation
     return replace(cloud, points=points)
