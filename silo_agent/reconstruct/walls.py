@@ -352,7 +352,7 @@ def wall_free(
     out, dropped = [], 0
     for cloud in cameras:
         ray = crossings.pop(0)
-        level = heights.ravel()[ray.cell]
+        level = np.take(heights.ravel(), ray.cell)  # uint16 or int32: take casts it fastest
         level = np.where(np.isfinite(level), level, shape.floor_z)
         level += WALL_CLEARANCE_M
         keep = _below_wall(cloud, ray, shape, level)
