@@ -122,7 +122,8 @@ def cell_information(
             contribution = masked(spread[block], 0.0)
         # a camera has one pair a cell: a fancy-indexed add is right, and adds what a dense
         # bincount added to every cell (a 4 M-cell array a camera, 1 cm over a 20 m bin)
-        information[cell] += contribution
+        # by an intp index: numpy casts an int32 one on both the gather and the scatter
+        information[cell.astype(np.intp)] += contribution
     return information.reshape(grid.shape)
 
 
