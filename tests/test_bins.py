@@ -239,39 +239,6 @@ def test_wall_crossings_in_chunks_are_the_whole_clouds(monkeypatch: pytest.Monke
     assert np.array_equal(clear, whole_clear)
 
 
-@pytest.mark.parametrize("polygon", [False, True])
-def test_cells_inward_are_the_hypot_ones_at_cell_edges_and_odd_points(polygon: bool) -> None:
-    """`_cell_inward` (a square root, not np.hypot, with the points near a cell's edge placed
-    again) gives `_cell_inward_exact`'s cells: on the wall, at cell edges 1.5 cells in, at the
-    centre, far off and at non-finite points."""
-    shape = BinShape(floor_z=0.0, eave_z=7.0, centre=(0.3, -0.2), diameter_m=10.0)
-    if polygon:
-        shape = BinShape(0.0, 7.0, wall=((-5, -5), (5.5, -5), (5.5, 5), (-5, 5)))
-    grid = Grid.over(shape.wall_polygon(), 0.1)
-    rng = np.random.default_rng(3)
-    bearing = rng.uniform(0, 2 * np.pi, 20000)
-    cx, cy = shape.centre if shape.diameter_m is not None else shape.wall_polygon().mean(0)
-    x, y = cx + 5.0 * np.cos(bearing), cy + 5.0 * np.sin(bearing)
-    # points whose inward place lies on a cell edge, to the last bit of the rounding
-    edge_x = grid.origin[0] + np.arange(1, 40) * grid.step
-    on_edge_x = np.concatenate([edge_x - 1.5 * grid.step, np.nextafter(edge_x, 0) - 0.15])
-    odd = np.array([cx, 1e-300, 1e200, -1e200, np.inf, -np.inf, np.nan, 1e17, -1e19])
-    for xs, ys in (
-        (x, y),  # far from every edge but by rounding: the square root's own cells
-        (on_edge_x, np.full(len(on_edge_x), cy)),
-        (
-            np.concatenate([odd, np.full(len(odd), cx)]),
-            np.concatenate([np.full(len(odd), cy), odd]),
-        ),
-    ):
-        with np.errstate(invalid="ignore", over="ignore"):
-            fast = walls._cell_inward(shape, grid, xs, ys)
-            exact = walls._cell_inward_exact(shape, grid, xs, ys)
-        assert np.array_equal(fast[0], exact[0])
-        assert np.array_equal(fast[1], exact[1])
-    assert fast[0].dtype == exact[0].dtype == np.int64
-
-
 def test_smoothed_depth_is_the_float64_images_mean_disparity() -> None:
     """Each point's pixel and disparity taken in float32 are float64's: the smoothed depth is
     that of the image built in float64 (x / z * fx + ppx rounded, 1 / z), filtered by scipy, to

@@ -195,72 +195,16 @@ def _cell_inward(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(row, col) of the cell whose surface gives the grain height at wall points (x, y):
     1.5 cells inward, towards the bin's centre (a polygon's: its vertices' mean), so the cell
-    is inside. `_cell_inward_exact`'s cells, without its np.hypot per point.
-
-    np.hypot is glibc's hypot, a scalar call of ~20 ns a point: most of the time the wall
-    crossings' cells took. Here the distance to the centre is sqrt(dx^2 + dy^2), 1 ulp off
-    hypot's for a fifth of a camera's wall points; that moves a point's place by ~1e-15 of a
-    cell, which changes its cell only where the place is that close to a cell's edge. So every
-    point placed within 1e-9 of a cell of an edge (orders of magnitude past what the rounding
-    here adds up to; more for coordinates far from the origin), or whose distance is not
-    finite, is placed again by `_cell_inward_exact`: the same cells, always. Own numerics for
-    the speed: the distances ~9x faster (1.3 ms -> 0.14 ms a chunk of 65536 points), the
-    function 1.4-1.5x (12 m bin, 8 full-resolution cameras' 7.2 M wall points, replayed:
-    117-125 -> 82-87 ms).
-    """
+    is inside. The distance by sqrt(dx^2 + dy^2), not np.hypot: glibc's scalar hypot (~20 ns a
+    point) was most of this function's time; the square root is at most 1 ulp off it."""
     if shape.diameter_m is not None:
         cx, cy = shape.centre
     else:
         cx, cy = np.mean(shape.wall_polygon(), axis=0)
     dx, dy = cx - x, cy - y
-    # squares past float64 overflow: their points go again, where hypot warns as it did
-    with np.errstate(over="ignore", invalid="ignore"):
-        length = dx * dx
-        length += dy * dy
-        np.sqrt(length, out=length)
-        unsure = ~np.isfinite(length)  # NaN, or squares past float64's range: hypot's own way
-        np.maximum(length, 1e-9, out=length)
-        pull = np.minimum(1.5 * grid.step, length)
-        inverse_step = 1.0 / grid.step  # what grid.cell_index computes, step by step
-        # the largest rounding any of this can add, in cells, is ~1e-15 of the coordinates'
-        # magnitude over the step (|x| <= |cx| + length): allow 1e-12 of it, and 1e-9 more
-        magnitude = abs(cx) + abs(cy) + abs(grid.origin[0]) + abs(grid.origin[1]) + 2 * grid.step
-        magnitude += 2 * float(np.fmax.reduce(length, initial=0.0))  # NaN: not read (unsure)
-        tolerance = 1e-9 + 1e-12 * magnitude * inverse_step
-        index = []
-        for along, at, origin in ((dy, y, grid.origin[1]), (dx, x, grid.origin[0])):
-            scaled = at + along / length * pull
-            scaled -= origin
-            scaled *= inverse_step
-            floor = np.floor(scaled)
-            scaled -= floor  # within the cell, [0, 1)
-            unsure |= scaled < tolerance
-            unsure |= scaled > 1.0 - tolerance
-            index.append(floor.astype(np.int64))
-    row, col = index
-    again = np.flatnonzero(unsure)
-    if len(again):
-        row[again], col[again] = _cell_inward_exact(shape, grid, x[again], y[again], clip=False)
-    rows, cols = grid.shape
-    np.clip(row, 0, rows - 1, out=row)
-    np.clip(col, 0, cols - 1, out=col)
-    return row, col
-
-
-def _cell_inward_exact(
-    shape: BinShape, grid: Grid, x: np.ndarray, y: np.ndarray, clip: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
-    """`_cell_inward` by np.hypot: its cells by definition (`clip`: onto the grid)."""
-    if shape.diameter_m is not None:
-        cx, cy = shape.centre
-    else:
-        cx, cy = np.mean(shape.wall_polygon(), axis=0)
-    dx, dy = cx - x, cy - y
-    length = np.maximum(np.hypot(dx, dy), 1e-9)
+    length = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-9)
     pull = np.minimum(1.5 * grid.step, length)
     row, col = grid.cell_index(x + dx / length * pull, y + dy / length * pull)
-    if not clip:
-        return row, col
     rows, cols = grid.shape
     return np.clip(row, 0, rows - 1), np.clip(col, 0, cols - 1)
 
