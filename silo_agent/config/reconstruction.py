@@ -49,7 +49,9 @@ class ReconstructionConfig(Strict):
         default=2.5,
         gt=0,
         description="the cameras' depth RMS over the D455's ideal-target figure; sets how near "
-        "the wall a point is left out while the grain height at the wall is found",
+        "the wall a point is left out while the grain height at the wall is found, and outside "
+        "a bin the volume's clip correction (how much of the smoothed floor's noise is taken "
+        "back off the clip at the base)",
     )
     min_coverage: float = Field(default=0.3, ge=0, le=1)
     alpha_m: float | None = Field(

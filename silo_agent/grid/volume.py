@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.special import ndtr
 
 from silo_agent.grid.filters import block_sums
 from silo_agent.grid.grid import Grid
@@ -142,8 +143,16 @@ def denoised_columns(
     return counted_columns(grid, counted_heights(grid, heights, base, scale_m))
 
 
+CLIP_BLOCK_M = 0.05  # the noise model's blocks for the clip's correction (`_smooth_sigma`)
+CLIP_MIN_DENSITY = 1e-3  # ... a block with less than this x the densest's information: fill
+
+
 def counted_heights(
-    grid: Grid, heights: np.ndarray, base: np.ndarray, scale_m: float
+    grid: Grid,
+    heights: np.ndarray,
+    base: np.ndarray,
+    scale_m: float,
+    information: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per cell, the height above `base` that the volume counts; NaN where there is no surface.
 
@@ -152,6 +161,19 @@ def counted_heights(
     (about Gaussian, `scale_m`) and the detail; only the smooth part is clipped, the detail is
     summed signed: counted = max(smooth, 0) + (height - base - smooth). Real areas below the
     base survive smoothing and are still excluded; noise cancels.
+
+    The smooth part keeps some noise, and its clip still counts some: with X ~ N(mu, sigma),
+    E[max(X, 0)] - max(mu, 0) = sigma (phi(z) - |z| Phi(-|z|)), z = mu / sigma (0.4 sigma a
+    cell on a floor at the base, nothing a few sigmas off it). With `information` (the cameras'
+    noise model) that expected excess, read at mu = the smooth part and sigma = its noise
+    (`_smooth_sigma`), is taken off the clipped value; but never below min(smooth, 0): a cell
+    above the base is taken down to the base at most, one under it to its own signed value.
+    The noise model's scale is the configured depth noise factor, rarely measured on a site;
+    that bound keeps a wrong one's damage within the clip's own bias: on a bare floor at the
+    base a cell counts between E[min(smooth, 0)] = -0.4 sigma (the factor far too high) and
+    the clip's +0.4 sigma (far too low). Ground well under the base (a pit, a floor set a
+    few sigmas too high) is still counted nothing, a smooth part made only of fill (no noise)
+    is clipped as before.
 
     Parameters
     ----------
@@ -163,6 +185,10 @@ def counted_heights(
         Height of the base under each cell (`base_surface`).
     scale_m : float
         Scale of the smooth part (the smoothing's sigma, metres; at least one cell).
+    information : ndarray, shape grid.shape, optional
+        Per measured cell, the information density of its height (1 / (m^2 x m^2),
+        reconstruct/trust.py `cell_information`), 0 on filled cells; None: no noise model, the
+        smooth part is clipped at the base.
 
     Returns
     -------
@@ -174,8 +200,76 @@ def counted_heights(
     relative = np.where(region, heights - base, 0.0)
     smooth = masked_smooth(relative, region, max(scale_m / grid.step, 1.0))
     smooth = np.where(region, smooth, 0.0)
-    counted = np.maximum(smooth, 0.0) + (relative - smooth)
+    kept = np.maximum(smooth, 0.0)
+    if information is not None:
+        sigma = _smooth_sigma(grid, information, region, scale_m)
+        kept = np.maximum(kept - clip_excess(smooth, sigma), np.minimum(smooth, 0.0))
+    counted = kept + (relative - smooth)
     return np.where(region, counted, np.nan)
+
+
+CLIP_EXCESS_MAX_Z = 8.0  # beyond this many sigmas of 0 the clip adds under 1e-16 sigma
+
+
+def clip_excess(mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """E[max(X, 0)] - max(mu, 0) for X ~ N(mu, sigma): what clipping a noisy value at 0 adds
+    on average, sigma (phi(z) - |z| Phi(-|z|)) with z = mu / sigma; 0 where sigma is 0 or
+    z beyond CLIP_EXCESS_MAX_Z (most of a silo: grain metres above the base)."""
+    mu, sigma = np.asarray(mu, dtype=np.float64), np.asarray(sigma, dtype=np.float64)
+    near = np.flatnonzero(np.abs(mu) < CLIP_EXCESS_MAX_Z * sigma)
+    z = np.abs(mu.ravel()[near]) / sigma.ravel()[near]
+    excess = np.zeros(mu.shape)
+    excess.ravel()[near] = sigma.ravel()[near] * (
+        np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi) - z * ndtr(-z)
+    )
+    return excess
+
+
+def _smooth_sigma(
+    grid: Grid, information: np.ndarray, region: np.ndarray, scale_m: float
+) -> np.ndarray:
+    """Per cell, the noise sigma of `masked_smooth`'s mean at `scale_m` over `region`, from the
+    cameras' information density I (0 on filled cells).
+
+    On a grid finer than CLIP_BLOCK_M most cells hold no point (at 1 cm a pixel seen from 3 m
+    covers several), so the density is read on blocks of about that side b (a sliding mean
+    over the block's cells in the region): a block's mean height has variance v = 1 / (b^2 I),
+    and the filled cells of a measured block carry it; blocks under CLIP_MIN_DENSITY of the
+    densest are fill, v = 0. The mean's
+    variance is then share x (kernel-weighted mean of v) / (kernel weight on the region)^2,
+    share (`_kernel_share`) the kernel's sum of squared weights at scale_m / b: exact for v
+    even over the kernel, and where the region cuts it symmetrically (half a kernel at an edge
+    doubles it). The same figure at every grid step."""
+    factor = max(1, round(CLIP_BLOCK_M / grid.step))
+    side = factor * grid.step
+    density = np.where(region, information, 0.0)
+    if factor > 1:  # over the block's cells in the region
+        both = np.stack([density, region.astype(np.float64)])
+        density, share = ndimage.uniform_filter(both, factor, mode="constant", axes=(-2, -1))
+        density = np.divide(density, share, out=np.zeros_like(density), where=share > 0)
+    measured = region & (density > CLIP_MIN_DENSITY * float(density.max(initial=0.0)))
+    variance = np.divide(1.0 / (side * side), density, out=np.zeros(region.shape), where=measured)
+    weight, total = _block_smooth(
+        [region.astype(np.float64), variance], max(scale_m / grid.step, 1.0)
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = _kernel_share(scale_m / side) * total / np.square(weight)
+    return np.where(region & (weight > 1e-12), np.sqrt(np.maximum(spread, 0.0)), 0.0)
+
+
+def _block_smooth(layers: list[np.ndarray], sigma_cells: float) -> list[np.ndarray]:
+    """Each layer's kernel-weighted mean: `masked_smooth`'s two box passes (about a Gaussian of
+    `sigma_cells`), zero outside the grid. On blocks of a quarter of the scale (the kernel
+    still 4+ blocks wide; noise levels change over it), each block's mean given back to its
+    cells: on a 1 cm grid they cost a 25th or less."""
+    block = max(1, int(sigma_cells // 4))
+    coarse = np.stack([block_sums(layer, block) for layer in layers]).astype(np.float32)
+    size = max(3, 2 * round(sigma_cells / block * np.sqrt(6) / 2) + 1)
+    for _ in range(2):
+        coarse = ndimage.uniform_filter(coarse, size, mode="constant", axes=(-2, -1))
+    rows, cols = layers[0].shape
+    fine = np.repeat(np.repeat(coarse / block**2, block, axis=1), block, axis=2)
+    return list(fine[:, :rows, :cols].astype(np.float64))
 
 
 def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:

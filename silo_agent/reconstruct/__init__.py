@@ -585,6 +585,11 @@ def _reconstruct(
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
         if first_pass:  # how wide its cameras' noise blobs are, for the reseat level
             blob = blob_scale(grid, moments, scan.cameras)
+    # outside a bin, the noise model for the volume's clip correction (`counted_heights`); a
+    # bin keeps the plain clip: its bare steel reads ~0.5 cm low from 8-10 m, an offset
+    noise = None
+    if site.bin is None and all(cloud.intrinsics for cloud in scan.cameras):
+        noise = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
@@ -652,9 +657,11 @@ def _reconstruct(
         heights = np.where(~observed & (heights < base), base, heights)
     else:
         base = base_surface(grid, heights, site.base, site.floor_z)
-    counted = counted_heights(
-        grid, heights, base, BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
-    )
+    scale_m = BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
+    if noise is not None:
+        noise = np.where(observed, noise, 0.0)  # filled cells measured nothing
+    counted = counted_heights(grid, heights, base, scale_m, noise)
+    del noise
     volume = integrate_counted(grid, counted)
     clock.lap("volume")
     result = _result(
