@@ -81,7 +81,9 @@ def bay_fills(count: int) -> list[Inputs]:
     reconstruct_module.membrane_fill = capture
     try:
         for seed in range(count):
-            settings = ReconstructionConfig(grid_step_m=0.01)
+            # the membrane's own inputs (the bay's default fill is the repose fill, which
+            # calls the membrane from its module, not through reconstruct's name)
+            settings = ReconstructionConfig(grid_step_m=0.01, fill="membrane")
             reconstruct_module.reconstruct(bay_scan(scene, seed, rig), settings)
     finally:
         reconstruct_module.membrane_fill = real

@@ -71,15 +71,21 @@ def test_floor_calibration_recovers_height_and_tilt(perturbed) -> None:
     assert all(c.leveled_by == "floor" for c in result.cameras)
     assert result.pairs[0].used
 
-    settings = ReconstructionConfig()
-    reference = reconstruct(replace(scan, cameras=with_extrinsics(scan.cameras, truth)), settings)
-    fixed = reconstruct(
-        replace(scan, cameras=with_extrinsics(scan.cameras, result.extrinsics())), settings
-    )
-    raw = reconstruct(scan, settings)
+    # the residual yaw (unobservable) moves where each camera puts the crest by a centimetre or
+    # so: the repose fill (the default here), which hangs the unseen flank from the crest, must
+    # move no more than the membrane for it (its block-wise holes and crest moved 1.1 %)
     truth_m3 = rig().scene.volume_m3
-    assert abs(raw.volume_m3 - reference.volume_m3) / truth_m3 > 0.01
-    assert abs(fixed.volume_m3 - reference.volume_m3) / truth_m3 < 0.006
+    for fill in ("membrane", "repose"):
+        settings = ReconstructionConfig(fill=fill)
+        reference = reconstruct(
+            replace(scan, cameras=with_extrinsics(scan.cameras, truth)), settings
+        )
+        fixed = reconstruct(
+            replace(scan, cameras=with_extrinsics(scan.cameras, result.extrinsics())), settings
+        )
+        raw = reconstruct(scan, settings)
+        assert abs(raw.volume_m3 - reference.volume_m3) / truth_m3 > 0.01, fill
+        assert abs(fixed.volume_m3 - reference.volume_m3) / truth_m3 < 0.003, fill
 
 
 def test_a_far_floor_is_fitted_without_bias() -> None:

@@ -39,12 +39,12 @@ def documented_decoder() -> dict:
 
 @pytest.fixture(scope="module")
 def published():
-    """A real result of the engine: a cone seen from two walls, 5 cm grid."""
+    """A real result of the engine: a cone seen from two walls, 5 cm grid (the membrane fill,
+    whose volume the comparisons with the naive integrals below were worked out on)."""
     scene = make_scene("cone", "wheat")
     scan = simulate(scene, ["A1", "A5"], 0, (0.0, 0.0), 0.05)
-    result = analyse(
-        scan, ReconstructionConfig.model_validate(scan.reconstruction), DetectionConfig()
-    ).reconstruction
+    settings = ReconstructionConfig.model_validate(scan.reconstruction | {"fill": "membrane"})
+    result = analyse(scan, settings, DetectionConfig()).reconstruction
     return scan, result, encode_heightmap(result.heightmap, scan.scan_id)
 
 

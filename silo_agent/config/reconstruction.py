@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import (
     Field,
@@ -18,6 +18,9 @@ from silo_agent.base.choices import (
     Method,
 )
 from silo_agent.config.base import Strict
+
+if TYPE_CHECKING:
+    from silo_agent.scan import Site
 
 
 class ReconstructionConfig(Strict):
@@ -35,8 +38,10 @@ class ReconstructionConfig(Strict):
         default=None, ge=1, description="smallest cluster kept; default relative to the cell"
     )
     max_clusters: int = Field(default=2, ge=1, le=8)
-    fill: Literal["membrane", "bspline", "repose"] = Field(
-        default="membrane", description="how empty cells are filled (reconstruct/fill.py)"
+    fill: Literal["auto", "membrane", "bspline", "repose"] = Field(
+        default="auto",
+        description="how empty cells are filled (reconstruct/fill.py); auto: the repose fill, "
+        "in a bin the membrane",
     )
     grain: Grain = Field(
         default=DEFAULT_GRAIN, description="what is stored: its angle of repose bounds the fill"
@@ -58,6 +63,14 @@ class ReconstructionConfig(Strict):
         default=None, gt=0, description="alpha baseline radius; default 4 x grid step"
     )
     poisson_depth: int = Field(default=8, ge=4, le=12)
+
+    def fill_for(self, site: Site) -> Literal["membrane", "bspline", "repose"]:
+        """The fill used on `site`: `fill`, or for "auto" the repose fill, better on every
+        open scene of the accuracy bench, and in a bin (`[silo.bin]`) the membrane, better in
+        round bins (docs/method.md, the fills compared)."""
+        if self.fill != "auto":
+            return self.fill
+        return "membrane" if site.bin is not None else "repose"
 
     @property
     def repose_slope(self) -> float:

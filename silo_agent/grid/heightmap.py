@@ -16,7 +16,7 @@ class HeightMap:
       (minimum y) row; column c likewise along +x. Arrays are indexed [row, col] = [y, x].
     - `heights` are silo-frame z in metres, NaN outside the region (the only unknown value).
     - `observed` marks cells that held measured points; the others were filled
-      (`reconstruction.fill`: by default the membrane).
+      (`reconstruction.fill`: by default the repose fill, the membrane in a bin).
     - `inside` is the fraction (0..1) of each cell inside the region polygon.
     - `floor_z` is the silo-frame z of the floor (levels are heights above it).
     - `base` is (a, b, c) of the base the volume is measured from, z = a*x + b*y + c.

@@ -1,8 +1,8 @@
 """BICM reconstruction: scan -> height map -> volume, mass, levels, coverage. Pure: no I/O.
 
 fuse + crop -> voxel down-sample (optional) -> clustered means per cell -> fill of empty cells
-(`reconstruction.fill`: by default the membrane; held to the grain's angle of repose, or the
-paper's B-spline, on request) -> slope
+(`reconstruction.fill`: by default the membrane held to the grain's angle of repose, and the
+plain membrane in a bin; or the paper's B-spline, on request) -> slope
 correction -> integration over the region (cut cells weighted).
 """
 
@@ -614,15 +614,16 @@ def _reconstruct(
     band = _wall_band(grid, bin_cells, observed)
     seen = observed & band  # measured cells of the band: covered, though filled
     observed &= ~band
+    fill = settings.fill_for(site)
     parameters = {
         "voxel_size_m": settings.voxel_size_m,
         "cluster_eps_m": cells.eps_m,
         "cluster_min_points": cells.min_points,
         "max_clusters": settings.max_clusters,
         "slope_correction": settings.slope_correction,
-        "fill": settings.fill,
+        "fill": fill,
     }
-    if settings.fill == "repose":
+    if fill == "repose":
         parameters["repose_deg"] = round(float(np.degrees(np.arctan(settings.repose_slope))), 3)
     if not np.any(observed):
         result = _result(
@@ -630,9 +631,9 @@ def _reconstruct(
         )
         result.registration = registration
         return result
-    if settings.fill == "bspline":
+    if fill == "bspline":
         filled = bspline_fill(cells.height, observed)
-    elif settings.fill == "repose":
+    elif fill == "repose":
         filled = repose_fill(
             cells.height,
             observed,
