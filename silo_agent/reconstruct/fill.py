@@ -366,14 +366,27 @@ def _envelope(
     upper: bool,
 ) -> np.ndarray:
     """At each target: min over sources of height + slope * distance (`upper`), or max of
-    height - slope * distance; positions in any unit `slope` is per. In chunks of targets,
-    which bound the memory (a loop over chunks, not cells)."""
+    height - slope * distance; positions in any unit `slope` is per."""
+    return _envelopes(target, source, [(height, slope, upper)])[0]
+
+
+def _envelopes(
+    target: tuple[np.ndarray, np.ndarray],
+    source: tuple[np.ndarray, np.ndarray],
+    bounds: list[tuple[np.ndarray, float, bool]],
+) -> list[np.ndarray]:
+    """`_envelope` for each (height, slope, upper) of `bounds` over the same targets and
+    sources: the distances computed once (the repose bounds take a lower and an upper envelope
+    over the same pairs; each is 40 % of the pairs' work, the distances the rest), and scaled
+    once a slope. In chunks of targets, which bound the memory (a loop over chunks, not
+    cells)."""
     # in float32 (positions within a few thousand cells, heights to a micrometre), half the
     # float64's time on these many pairs
     ty, tx = (np.asarray(a, dtype=np.float32) for a in target)
     sy, sx = (np.asarray(a, dtype=np.float32) for a in source)
-    height = np.asarray(height, dtype=np.float32)
-    out = np.empty(len(ty))
+    heights = [np.asarray(h, dtype=np.float32) for h, _, _ in bounds]
+    slopes = sorted({slope for _, slope, _ in bounds})
+    outs = [np.empty(len(ty)) for _ in bounds]
     chunk = max(1, _PAIRS_PER_CHUNK // max(1, len(sy)))
     for start in range(0, len(ty), chunk):
         at = slice(start, start + chunk)
@@ -381,15 +394,24 @@ def _envelope(
         dx = tx[at, None] - sx
         dy *= dy
         dx *= dx
-        reach = np.sqrt(dy + dx, out=dy)
-        reach *= np.float32(slope)
-        if upper:
-            reach += height
-            out[at] = reach.min(axis=1)
-        else:
-            np.subtract(height, reach, out=reach)
-            out[at] = reach.max(axis=1)
-    return out
+        distance = np.sqrt(dy + dx, out=dy)
+        scratch = dx
+        for slope in slopes:
+            if slope == slopes[-1]:  # the last slope scales the distances in place
+                reach = distance
+                reach *= np.float32(slope)
+            else:
+                reach = distance * np.float32(slope)
+            for (_, bound_slope, upper), height, out in zip(bounds, heights, outs, strict=True):
+                if bound_slope != slope:
+                    continue
+                if upper:
+                    np.add(reach, height, out=scratch)
+                    out[at] = scratch.min(axis=1)
+                else:
+                    np.subtract(height, reach, out=scratch)
+                    out[at] = scratch.max(axis=1)
+    return outs
 
 
 def _hole_share(density: np.ndarray) -> np.ndarray:
@@ -513,13 +535,16 @@ def repose_bounds(
     every_other = every_other[is_source]
     sparse = (source[0][every_other], source[1][every_other])
     raised, lowered = source_height + doubt, source_height - doubt
+    far_under, far_over = _envelopes(
+        source,
+        sparse,
+        [(raised[every_other], cell_slope, True), (lowered[every_other], cell_slope, False)],
+    )
     under = np.minimum(
-        _local_envelope(is_source, source, raised, cell_slope, reach, True),
-        _envelope(source, sparse, raised[every_other], cell_slope, upper=True),
+        _local_envelope(is_source, source, raised, cell_slope, reach, True), far_under
     )
     over = np.maximum(
-        _local_envelope(is_source, source, lowered, cell_slope, reach, False),
-        _envelope(source, sparse, lowered[every_other], cell_slope, upper=False),
+        _local_envelope(is_source, source, lowered, cell_slope, reach, False), far_over
     )
     # the holes' bounds from the sources at their rims: one farther out bounds no more than
     # those between it and the hole, once levelled to repose against them
@@ -531,9 +556,13 @@ def repose_bounds(
     where = (target[0][bounded], target[1][bounded])
     lower = np.full(target[0].shape, np.nan)
     level = np.full(target[0].shape, np.nan)
-    lower[bounded] = _envelope(where, rim_source, (under - doubt)[rim], cell_slope, upper=False)
-    level[bounded] = _envelope(
-        where, rim_source, (over + doubt)[rim], LEVEL_SLOPE * step, upper=True
+    lower[bounded], level[bounded] = _envelopes(
+        where,
+        rim_source,
+        [
+            ((under - doubt)[rim], cell_slope, False),
+            ((over + doubt)[rim], LEVEL_SLOPE * step, True),
+        ],
     )
     spacing = REPOSE_TARGET_M / step
     cell_share = _lattice_to_cells(np.where(bounded, target_share, 0.0), cells, spacing)
