@@ -540,12 +540,9 @@ def repose_bounds(
         sparse,
         [(raised[every_other], cell_slope, True), (lowered[every_other], cell_slope, False)],
     )
-    under = np.minimum(
-        _local_envelope(is_source, source, raised, cell_slope, reach, True), far_under
-    )
-    over = np.maximum(
-        _local_envelope(is_source, source, lowered, cell_slope, reach, False), far_over
-    )
+    near_under, near_over = _local_envelopes(is_source, source, raised, lowered, cell_slope, reach)
+    under = np.minimum(near_under, far_under)
+    over = np.maximum(near_over, far_over)
     # the holes' bounds from the sources at their rims: one farther out bounds no more than
     # those between it and the hole, once levelled to repose against them
     rim = ndimage.binary_dilation(hole, np.ones((3, 3), dtype=bool), iterations=RIM_NODES)
@@ -580,41 +577,42 @@ def repose_bounds(
     )
 
 
-def _local_envelope(
+def _local_envelopes(
     where: np.ndarray,
     position: tuple[np.ndarray, np.ndarray],
-    height: np.ndarray,
+    raised: np.ndarray,
+    lowered: np.ndarray,
     slope: float,
     reach: int,
-    upper: bool,
-) -> np.ndarray:
-    """`_envelope` of the sources on themselves, over the sources within `reach` lattice
-    nodes of each only (a source steeper than repose stands so above its near neighbours):
-    the sources are the `where` nodes of a lattice, at `position`, in their order."""
-    fill = np.inf if upper else -np.inf
+) -> tuple[np.ndarray, np.ndarray]:
+    """The upper `_envelope` of `raised` and the lower of `lowered`, of the sources on
+    themselves, over the sources within `reach` lattice nodes of each only (a source steeper
+    than repose stands so above its near neighbours): the sources are the `where` nodes of a
+    lattice, at `position`, in their order. Both over the same pairs, whose distances are
+    computed once."""
     grids = []
-    for values in (height, *position):
+    for values in (raised, lowered, *position):
         grid = np.full(where.shape, np.nan)
         grid[where] = values
         grids.append(np.pad(grid, reach, constant_values=np.nan))
-    h, r, c = grids
+    up, down, r, c = grids
     rows, cols = where.shape
     centre = (slice(reach, reach + rows), slice(reach, reach + cols))
-    out = np.where(np.isnan(h[centre]), fill, h[centre])
+    under = np.where(np.isnan(up[centre]), np.inf, up[centre])
+    over = np.where(np.isnan(down[centre]), -np.inf, down[centre])
+    bound = np.empty(where.shape)
     for dr in range(-reach, reach + 1):
         for dc in range(-reach, reach + 1):
             if (dr, dc) == (0, 0) or dr * dr + dc * dc > reach * reach:
                 continue
             at = (slice(reach + dr, reach + dr + rows), slice(reach + dc, reach + dc + cols))
-            bound = np.hypot(r[at] - r[centre], c[at] - c[centre])
-            bound *= slope
-            if upper:
-                bound += h[at]
-                np.fmin(out, bound, out=out)
-            else:
-                np.subtract(h[at], bound, out=bound)
-                np.fmax(out, bound, out=out)
-    return out[where]
+            distance = np.hypot(r[at] - r[centre], c[at] - c[centre])
+            distance *= slope
+            np.add(distance, up[at], out=bound)
+            np.fmin(under, bound, out=under)
+            np.subtract(down[at], distance, out=bound)
+            np.fmax(over, bound, out=over)
+    return under[where], over[where]
 
 
 def _lattice_to_cells(
