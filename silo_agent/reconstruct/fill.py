@@ -388,20 +388,24 @@ def _envelopes(
     slopes = sorted({slope for _, slope, _ in bounds})
     outs = [np.empty(len(ty)) for _ in bounds]
     chunk = max(1, _PAIRS_PER_CHUNK // max(1, len(sy)))
+    # the chunks' arrays allocated once (a fresh one a chunk is as many page faults)
+    rows = min(chunk, len(ty))
+    buffers = [np.empty((rows, len(sy)), dtype=np.float32) for _ in range(3)]
     for start in range(0, len(ty), chunk):
         at = slice(start, start + chunk)
-        dy = ty[at, None] - sy
-        dx = tx[at, None] - sx
+        dy, dx, scratch = (b[: len(ty[at])] for b in buffers)
+        np.subtract(ty[at, None], sy, out=dy)
+        np.subtract(tx[at, None], sx, out=dx)
         dy *= dy
         dx *= dx
-        distance = np.sqrt(dy + dx, out=dy)
-        scratch = dx
+        dy += dx
+        distance = np.sqrt(dy, out=dy)
         for slope in slopes:
             if slope == slopes[-1]:  # the last slope scales the distances in place
                 reach = distance
                 reach *= np.float32(slope)
             else:
-                reach = distance * np.float32(slope)
+                reach = np.multiply(distance, np.float32(slope), out=dx)
             for (_, bound_slope, upper), height, out in zip(bounds, heights, outs, strict=True):
                 if bound_slope != slope:
                     continue
