@@ -795,10 +795,11 @@ def main() -> None:
     pool = tuple(sorted({int(n) for n in args.pool.split(",")} - {1}))
     if any(n < 1 for n in pool):
         parser.error("--pool: numbers of scans are 1 or more")
-    settings = ReconstructionConfig()
     runs, pooled = [], []
     for name in args.scenes.split(","):
         rig = SimRig(make_scene(name))
+        # the scene's own depth noise, as an installer sets it (the volume's clip reads it)
+        settings = ReconstructionConfig(depth_noise_factor=rig.scene.surface_factor)
         for views in VIEWS:
             for seed in range(args.seeds):
                 r, more = one(rig, views, seed, settings, pool, args.spacing_sigma)
@@ -832,7 +833,8 @@ def main() -> None:
         lines += report_pooled(runs, pooled)
     if args.spacing_sigma is not None:
         lines += report_spaced(runs, args.spacing_sigma)
-    lines += drift(cone, settings, args.repeats) + residual_cost(cone, settings)
+    cone_settings = ReconstructionConfig(depth_noise_factor=cone.scene.surface_factor)
+    lines += drift(cone, cone_settings, args.repeats) + residual_cost(cone, cone_settings)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines))
     print("\n".join(lines))
