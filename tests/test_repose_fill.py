@@ -143,9 +143,9 @@ def test_the_default_fill_is_repose_outside_a_bin_and_the_membrane_in_one() -> N
     assert default.fill == "auto"
     open_site, bin_site = make_scene("cone").site, make_scene("bin-heap").site
     assert bin_site.bin is not None and open_site.bin is None
-    assert default.fill_for(open_site) == "repose"
-    assert default.fill_for(bin_site) == "membrane"
-    assert ReconstructionConfig(fill="membrane").fill_for(open_site) == "membrane"
-    assert ReconstructionConfig(fill="repose").fill_for(bin_site) == "repose"
+    assert default.fill_for(open_site.bin is not None) == "repose"
+    assert default.fill_for(bin_site.bin is not None) == "membrane"
+    assert ReconstructionConfig(fill="membrane").fill_for(open_site.bin is not None) == "membrane"
+    assert ReconstructionConfig(fill="repose").fill_for(bin_site.bin is not None) == "repose"
     result = reconstruct(simulate("cone", ["A1", "A5"], seed=0), default)
     assert result.parameters["fill"] == "repose" and "repose_deg" in result.parameters

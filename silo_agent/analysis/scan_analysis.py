@@ -137,7 +137,7 @@ def _per_scan_calibration(
     said: dict[str, Any] = {}
     if calibration is None:
         return scan, said
-    if calibration.levels(site):
+    if calibration.level:
         from silo_agent.calibrate import level_scan
 
         scan, leveled, notes = level_scan(scan, calibration, site)

@@ -2,17 +2,12 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Literal
-
 from pydantic import (
     Field,
     model_validator,
 )
 
 from silo_agent.config.base import Strict
-
-if TYPE_CHECKING:
-    from silo_agent.scan import Site
 
 SPACING_SIGMA_M = 0.003  # default uncertainty of a measured camera spacing (laser meter)
 
@@ -81,10 +76,9 @@ class CalibrationConfig(Strict):
     refine: bool = Field(
         default=False, description="every scan: bounded ICP on the overlaps before reconstructing"
     )
-    level: Literal["auto"] | bool = Field(
-        default="auto",
-        description="every scan: each camera that sees bare floor is leveled on it (as --floor); "
-        "auto: on a site without [silo.bin] whose base is the floor",
+    level: bool = Field(
+        default=False,
+        description="every scan: each camera that sees bare floor is leveled on it (as --floor)",
     )
     refine_max_deg: float = Field(
         default=0.5, gt=0, description="per-scan bound of refine's and level's corrections"
@@ -95,13 +89,3 @@ class CalibrationConfig(Strict):
     spacing: list[SpacingConfig] = Field(
         default=[], description="measured camera-to-camera distances calibrate holds to"
     )
-
-    def levels(self, site: Site) -> bool:
-        """Whether every scan on `site` is leveled on its floor: `level`, or for "auto" on a
-        site without a bin whose base is the floor. With 0.1 deg / 3 mm placement errors it
-        took the open scenes' volume error from 0.96 / 0.99 / 1.35 % to 0.50 / 0.45 / 0.18 %
-        with 2 / 3 / 4 views (docs/calibration.md); in a bin the grain covers the floor, and
-        thin level grain would be taken for it."""
-        if self.level != "auto":
-            return self.level
-        return site.bin is None and site.base == "floor"

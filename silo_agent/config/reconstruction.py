@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from pydantic import (
     Field,
@@ -18,9 +18,6 @@ from silo_agent.base.choices import (
     Method,
 )
 from silo_agent.config.base import Strict
-
-if TYPE_CHECKING:
-    from silo_agent.scan import Site
 
 
 class ReconstructionConfig(Strict):
@@ -64,13 +61,13 @@ class ReconstructionConfig(Strict):
     )
     poisson_depth: int = Field(default=8, ge=4, le=12)
 
-    def fill_for(self, site: Site) -> Literal["membrane", "bspline", "repose"]:
-        """The fill used on `site`: `fill`, or for "auto" the repose fill, better on every
-        open scene of the accuracy bench, and in a bin (`[silo.bin]`) the membrane, better in
-        round bins (docs/method.md, the fills compared)."""
+    def fill_for(self, in_bin: bool) -> Literal["membrane", "bspline", "repose"]:
+        """The fill used on a site (`in_bin`: it has `[silo.bin]`): `fill`, or for "auto" the
+        repose fill, better on every open scene of the accuracy bench, and in a bin the
+        membrane, better in round bins (docs/method.md, the fills compared)."""
         if self.fill != "auto":
             return self.fill
-        return "membrane" if site.bin is not None else "repose"
+        return "membrane" if in_bin else "repose"
 
     @property
     def repose_slope(self) -> float:

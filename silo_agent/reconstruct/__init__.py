@@ -614,7 +614,7 @@ def _reconstruct(
     band = _wall_band(grid, bin_cells, observed)
     seen = observed & band  # measured cells of the band: covered, though filled
     observed &= ~band
-    fill = settings.fill_for(site)
+    fill = settings.fill_for(site.bin is not None)
     parameters = {
         "voxel_size_m": settings.voxel_size_m,
         "cluster_eps_m": cells.eps_m,
