@@ -580,16 +580,14 @@ def _reconstruct(
         cell = row * grid.shape[1] + col
         moments = CellMoments.of(points, camera, cell, moments.n_cells, moments.n_cams)
         clock.lap("voxel_downsample")
-    information = blob = None  # how well each cell is known, for a bin's levels: from the moments
-    if site.bin is not None:  # before the totals: its per-pair temporaries are the larger peak
+    # how well each cell is known, from the moments: for a bin's levels, and outside a bin for
+    # the volume's clip correction (`counted_heights`); before the totals: its per-pair
+    # temporaries are the larger peak
+    information = blob = None
+    if site.bin is not None or all(cloud.intrinsics for cloud in scan.cameras):
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
-        if first_pass:  # how wide its cameras' noise blobs are, for the reseat level
-            blob = blob_scale(grid, moments, scan.cameras)
-    # outside a bin, the noise model for the volume's clip correction (`counted_heights`); a
-    # bin keeps the plain clip: its bare steel reads ~0.5 cm low from 8-10 m, an offset
-    noise = None
-    if site.bin is None and all(cloud.intrinsics for cloud in scan.cameras):
-        noise = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
+    if site.bin is not None and first_pass:  # how wide its cameras' noise blobs are, for the
+        blob = blob_scale(grid, moments, scan.cameras)  # reseat level
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
@@ -659,8 +657,10 @@ def _reconstruct(
     else:
         base = base_surface(grid, heights, site.base, site.floor_z)
     scale_m = BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
-    if noise is not None:
-        noise = np.where(observed, noise, 0.0)  # filled cells measured nothing
+    # a bin keeps the plain clip: its bare steel reads ~0.5 cm low from 8-10 m, an offset
+    noise = None
+    if site.bin is None and information is not None:  # filled cells measured nothing
+        noise, information = np.where(observed, information, 0.0), None
     counted = counted_heights(grid, heights, base, scale_m, noise)
     del noise
     volume = integrate_counted(grid, counted)

@@ -50,6 +50,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from silo_agent.reconstruct.residual import median
+
 if TYPE_CHECKING:
     from scipy.sparse import csr_array
 
@@ -58,7 +60,7 @@ _SATURATION = 4.0  # a coarse cell a quarter covered is trusted fully
 
 
 def _blur_decimate(values: np.ndarray) -> np.ndarray:
-    from scipy import ndimage  # the B-spline fill is an option; the default fill needs no scipy
+    from scipy import ndimage  # imported when the B-spline fill runs: it is an option
 
     out = ndimage.convolve1d(values, _KERNEL, axis=0, mode="constant")
     out = ndimage.convolve1d(out, _KERNEL, axis=1, mode="constant")
@@ -358,28 +360,17 @@ SOURCE_RING_M = 0.12  # sources: lattice nodes this near a node of a hole
 _PAIRS_PER_CHUNK = 1 << 20  # (target, source) distances held at once
 
 
-def _envelope(
-    target: tuple[np.ndarray, np.ndarray],
-    source: tuple[np.ndarray, np.ndarray],
-    height: np.ndarray,
-    slope: float,
-    upper: bool,
-) -> np.ndarray:
-    """At each target: min over sources of height + slope * distance (`upper`), or max of
-    height - slope * distance; positions in any unit `slope` is per."""
-    return _envelopes(target, source, [(height, slope, upper)])[0]
-
-
 def _envelopes(
     target: tuple[np.ndarray, np.ndarray],
     source: tuple[np.ndarray, np.ndarray],
     bounds: list[tuple[np.ndarray, float, bool]],
 ) -> list[np.ndarray]:
-    """`_envelope` for each (height, slope, upper) of `bounds` over the same targets and
-    sources: the distances computed once (the repose bounds take a lower and an upper envelope
-    over the same pairs; each is 40 % of the pairs' work, the distances the rest), and scaled
-    once a slope. In chunks of targets, which bound the memory (a loop over chunks, not
-    cells)."""
+    """At each target, for each (height, slope, upper) of `bounds`: the min over sources of
+    height + slope * distance (`upper`), or the max of height - slope * distance; positions in
+    any unit the slope is per. The distances computed once (the repose bounds take a lower
+    and an upper envelope over the same pairs; each is 40 % of the pairs' work, the distances
+    the rest), and scaled once a slope. In chunks of targets, which bound the memory (a loop
+    over chunks, not cells)."""
     # in float32 (positions within a few thousand cells, heights to a micrometre), half the
     # float64's time on these many pairs
     ty, tx = (np.asarray(a, dtype=np.float32) for a in target)
@@ -490,31 +481,31 @@ def repose_bounds(
     def sample(values: np.ndarray, nodes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         return ndimage.map_coordinates(values, list(nodes), order=1, mode="nearest")
 
-    def hole_share(nodes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    def densities(nodes: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(area, point density) at the nodes; density 0 where almost none is in the region."""
         node_area = sample(area, nodes)
-        inside = node_area > 1e-3
         node_density = np.divide(
-            sample(density, nodes), node_area, out=np.zeros_like(node_area), where=inside
+            sample(density, nodes), node_area, out=np.zeros_like(node_area), where=node_area > 1e-3
         )
-        return np.where(inside, _hole_share(node_density / typical), 0.0)
+        return node_area, node_density
+
+    def hole_share(node_area: np.ndarray, node_density: np.ndarray) -> np.ndarray:
+        return np.where(node_area > 1e-3, _hole_share(node_density / typical), 0.0)
 
     node = lattice(REPOSE_NODE_M)
-    node_area = sample(area, node)
-    node_density = np.divide(
-        sample(density, node), node_area, out=np.zeros_like(node_area), where=node_area > 1e-3
-    )
+    node_area, node_density = densities(node)
     seen = node_density > 0
-    typical = float(np.median(node_density[seen])) if np.any(seen) else 0.0
+    typical = median(node_density[seen]) if np.any(seen) else 0.0
     if typical <= 0:
         return -unbounded, unbounded, np.zeros(len(cells[0]))
-    share = hole_share(node)
+    share = hole_share(node_area, node_density)
     hole = share > 0
     node_weight = sample(weight, node)
     ring = max(1, int(np.ceil(SOURCE_RING_M / REPOSE_NODE_M)))
     near = ndimage.binary_dilation(hole, np.ones((3, 3), dtype=bool), iterations=ring)
     is_source = near & (share < 1) & (node_weight > 1e-3 * node_area)
     target = lattice(REPOSE_TARGET_M)
-    target_share = hole_share(target)
+    target_share = hole_share(*densities(target))
     bounded = ndimage.binary_dilation(target_share > 0, np.ones((3, 3), dtype=bool))
     if not np.any(is_source) or not np.any(target_share > 0):
         return -unbounded, unbounded, np.zeros(len(cells[0]))
