@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 from benchlib import TimedOut, call_with_timeout, cloudcompare_on_scan, fmt, header
 
-from silo_agent.calibrate import level_scan
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
+from silo_agent.reconstruct.level import level_scan
 from silo_agent.scan import Scan
 from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate

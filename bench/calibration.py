@@ -45,9 +45,9 @@ from silo_agent.calibrate import (
     pool_scans,
     with_extrinsics,
 )
-from silo_agent.calibrate.floor import FLOOR_MIN_POINTS
 from silo_agent.config import CalibrationConfig, ReconstructionConfig, SpacingConfig
 from silo_agent.reconstruct import reconstruct
+from silo_agent.reconstruct.level import FLOOR_MIN_POINTS
 from silo_agent.scan import Scan
 from silo_agent.sim.layouts import axis_angle, view_pose
 from silo_agent.sim.scenes import make_scene

@@ -11,7 +11,7 @@ import os
 import shutil
 import stat
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from datetime import datetime
@@ -167,6 +167,16 @@ def measured_only(camera: CameraCloud) -> CameraCloud:
 
 
 # ---------------------------------------------------------------- manifest schema
+
+
+def with_extrinsics(
+    cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray]
+) -> list[CameraCloud]:
+    """The clouds with their extrinsics replaced (cameras missing from `poses` unchanged)."""
+    return [
+        replace(c, extrinsic=np.asarray(poses.get(c.serial, c.extrinsic), dtype=float))
+        for c in cameras
+    ]
 
 
 def gravity_of(camera: CameraCloud) -> np.ndarray | None:

@@ -138,7 +138,7 @@ def _per_scan_calibration(
     if calibration is None:
         return scan, said
     if calibration.level:
-        from silo_agent.calibrate import level_scan
+        from silo_agent.reconstruct.level import level_scan
 
         scan, leveled, notes = level_scan(scan, calibration, site)
         said["leveled"] = {

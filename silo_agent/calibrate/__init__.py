@@ -10,9 +10,10 @@ that their noise averages) fixes that:
    least-squares pose graph with a prior on each camera's correction (open3d's multiway
    registration drifted along what the scene cannot show), so that all overlaps agree at once.
 2. *Leveling* fixes what relative registration cannot see (the whole rig's tilt and height):
-   with `floor` (`floor.py`), each camera's own view of the floor plane `z = floor_z` (RANSAC,
-   then least squares) sets its pitch, roll and height; otherwise the cameras' accelerometer
-   gravity vectors set the rig's tilt and the configured (mounted) heights its height.
+   with `floor` (`silo_agent.reconstruct.level`, which per-scan leveling shares), each
+   camera's own view of the floor plane `z = floor_z` (RANSAC, then least squares) sets its
+   pitch, roll and height; otherwise the cameras' accelerometer gravity vectors set the
+   rig's tilt and the configured (mounted) heights its height.
 3. The rig's yaw and plan position, which a floor and gravity cannot see, stay where the
    configured extrinsics put them on average (2-D Procrustes on the camera poses). Its scale,
    which a scan without walls hardly shows, comes from measured camera spacings
@@ -24,23 +25,22 @@ that their noise averages) fixes that:
 
 `config_file.py` writes the result back into the site's config. Drift monitoring runs inside
 the daemon and lives with the analysis (`silo_agent.analysis.drift`): the daemon does not
-import this package, except `refine` and `level_scan` when `calibration.refine` or
-`calibration.level` is on.
+import this package, except `refine` when `calibration.refine` is on (per-scan leveling,
+`calibration.level`, lives with the reconstruction: numpy and scipy only).
 """
 
 from silo_agent.calibrate.config_file import rewrite_config_text, write_calibrated_config
 from silo_agent.calibrate.errors import CalibrationError, ScanMismatch, SerialMismatch
-from silo_agent.calibrate.floor import fit_plane, floor_points
 from silo_agent.calibrate.pool import pixel_means, pool_scans
 from silo_agent.calibrate.solve import (
     Calibration,
     calibrate,
-    level_scan,
     refine,
     scan_residuals,
     start_poses,
-    with_extrinsics,
 )
+from silo_agent.reconstruct.level import fit_plane, floor_points, level_scan
+from silo_agent.scan import with_extrinsics
 
 __all__ = [
     "Calibration",

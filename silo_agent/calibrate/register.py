@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from silo_agent.calibrate.floor import point_sigma
-from silo_agent.calibrate.rigid import about, rotation_between_axis
 from silo_agent.config import CalibrationConfig, SpacingConfig
+from silo_agent.grid.rigid import about, rotation_between_axis
+from silo_agent.reconstruct.level import point_sigma
 from silo_agent.scan import CameraCloud, Site
 
 ICP_ITERATIONS = 15  # per scale

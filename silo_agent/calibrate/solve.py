@@ -11,15 +11,15 @@ from typing import Any, Literal
 import numpy as np
 
 from silo_agent.calibrate.errors import CalibrationError, SerialMismatch
-from silo_agent.calibrate.floor import floor_leveled
 from silo_agent.calibrate.register import PairRegistration, register
-from silo_agent.calibrate.rigid import UP, about, planar_procrustes, pose_change, rotation_between
 from silo_agent.config import CalibrationConfig, Config, SpacingConfig
 from silo_agent.grid.geometry import euler_from_rotation
 from silo_agent.grid.grid import Grid
+from silo_agent.grid.rigid import UP, about, planar_procrustes, pose_change, rotation_between
 from silo_agent.reconstruct.fuse import fuse_and_crop
+from silo_agent.reconstruct.level import floor_leveled
 from silo_agent.reconstruct.residual import PairResidual, registration_residuals
-from silo_agent.scan import CameraCloud, Scan, Site, gravity_angles, gravity_of
+from silo_agent.scan import CameraCloud, Scan, Site, gravity_angles, gravity_of, with_extrinsics
 
 
 @dataclass(frozen=True)
@@ -159,16 +159,6 @@ def _fmt(r: PairResidual | None) -> str:
     if r is None:
         return "       (no overlap)     "
     return f"{r.median_m * 1000:+6.1f} ±{r.mad_m * 1000:4.1f} ({r.cells:5d})"
-
-
-def with_extrinsics(
-    cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray]
-) -> list[CameraCloud]:
-    """The clouds with their extrinsics replaced (cameras missing from `poses` unchanged)."""
-    return [
-        replace(c, extrinsic=np.asarray(poses.get(c.serial, c.extrinsic), dtype=float))
-        for c in cameras
-    ]
 
 
 def scan_residuals(
@@ -380,45 +370,6 @@ def refine(
                 "mm, beyond refine_max_*; extrinsics unchanged (recalibrate?)"
             ]
     return replace(scan, cameras=with_extrinsics(scan.cameras, moved)), []
-
-
-def level_scan(
-    scan: Scan, settings: CalibrationConfig, site: Site | None = None
-) -> tuple[Scan, dict[str, tuple[float, float]], list[str]]:
-    """Per-scan leveling (`calibration.level`): every camera that sees bare floor is leveled
-    on it as `calibrate --floor` levels it (`floor_leveled`).
-
-    Why: a camera's height and tilt errors bias the whole floor it sees (0.1 deg and 3 mm per
-    camera made the accuracy bench's four-view scans 1.5 % off, against 0.3 % placed exactly),
-    and the floor is a reference in every scan that shows some of it. A camera that sees no
-    floor, or would move more than `refine_max_deg` / `refine_max_m` (thin level grain taken
-    for the floor, or a camera knocked: recalibrate), keeps its extrinsic, with a note. Only
-    a flat floor at `floor_z` levels: not sloping ground (`base = "boundary"`) or a bin's
-    hopper or sloped floor. Returns the scan, each leveled camera's correction (degrees,
-    metres) and the notes."""
-    site = site or scan.site
-    if site.base != "floor" or (site.bin is not None and site.bin.floor != "flat"):
-        return scan, {}, ["level: the floor is not a flat plane at floor_z; extrinsics unchanged"]
-    poses = {c.serial: c.extrinsic for c in scan.cameras}
-    corrections: dict[str, tuple[float, float]] = {}
-    notes = []
-    for camera in scan.cameras:
-        leveled, _ = floor_leveled(camera, camera.extrinsic, site.floor_z, settings)
-        if leveled is None:
-            notes.append(f"level: {camera.serial} sees no bare floor; extrinsic unchanged")
-            continue
-        degrees, metres = pose_change(camera.extrinsic, leveled)
-        if degrees > settings.refine_max_deg or metres > settings.refine_max_m:
-            notes.append(
-                f"level: {camera.serial} would turn {degrees:.2f} deg / move "
-                f"{metres * 1000:.0f} mm, beyond refine_max_*; extrinsic unchanged (recalibrate?)"
-            )
-            continue
-        poses[camera.serial] = leveled
-        corrections[camera.serial] = (degrees, metres)
-    if not corrections:
-        return scan, {}, notes
-    return replace(scan, cameras=with_extrinsics(scan.cameras, poses)), corrections, notes
 
 
 # ---------------------------------------------------------------- matching a config
