@@ -103,40 +103,43 @@ class CameraPairs:
         return cls(of_element, pair_group, pair_camera)
 
 
-def _camera_cell_pairs(
-    camera: np.ndarray, cell: np.ndarray, n_cells: int, n_cams: int
+def _sorted_pairs(
+    camera: np.ndarray, cell: np.ndarray, n_cells: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(the pair of each point as intp, each pair's cell, each pair's camera), the pairs
-    numbered camera by camera and, within a camera, by cell.
+    """Points in any camera order: (the pair of each point as intp, each pair's cell, each
+    pair's camera), the pairs numbered in (camera, cell) order through a sort of their keys."""
+    key = camera.astype(np.int64) * n_cells + cell
+    unique, index = np.unique(key, return_inverse=True)
+    pair_camera, pair_cell = np.divmod(unique, n_cells)
+    return index.astype(np.intp), pair_cell.astype(cell.dtype), pair_camera.astype(np.uint8)
 
-    A fused cloud comes camera by camera: then each camera's cells are marked on the grid and
-    numbered in cell order, with no sort and no cameras x cells array (12 m silo at 1 cm,
-    3.3 M points of 8 cameras: 0.03 s where numbering (cell, camera) pairs by camera bitmasks
-    (CameraPairs) took 0.09 s, and each camera's bincounts then stay in its own slice of the
-    sums). Points in any other order are numbered through a sort of their (camera, cell) keys."""
-    if len(camera) and np.any(camera[1:] < camera[:-1]):
-        key = camera.astype(np.int64) * n_cells + cell
-        unique, index = np.unique(key, return_inverse=True)
-        pair_camera, pair_cell = np.divmod(unique, n_cells)
-        return index.astype(np.intp), pair_cell.astype(cell.dtype), pair_camera.astype(np.uint8)
-    bounds = np.searchsorted(camera, np.arange(n_cams + 1))
-    index = np.empty(len(cell), np.intp)
-    number = np.empty(n_cells, np.intp)  # read only where written: a camera's own cells
+
+def _pair_sums(
+    points: np.ndarray, index: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(count, sum x, sum y, sum z, sum z^2) of the `n` pairs, the points numbered by `index`:
+    one bincount each, adding each pair's points in their order."""
+    count = np.bincount(index, None, n)
+    sum_x = np.bincount(index, points[:, 0], n)
+    sum_y = np.bincount(index, points[:, 1], n)
+    z = points[:, 2].astype(np.float64)
+    sum_z = np.bincount(index, z, n)
+    z *= z  # squared in place
+    return count, sum_x, sum_y, sum_z, np.bincount(index, z, n)
+
+
+def _camera_cells(camera_bounds: list[int], cell: np.ndarray, n_cells: int) -> list[np.ndarray]:
+    """Each camera's cells, ascending, of points that come camera by camera (`camera_bounds`:
+    each camera's first point, then the end): marked on the grid, no sort and nothing
+    cameras x cells."""
+    seen = np.zeros(n_cells, bool)
     cells = []
-    first = 0
-    for lo, hi in itertools.pairwise(bounds.tolist()):
-        mine = cell[lo:hi]
-        seen = np.zeros(n_cells, bool)
-        seen[mine] = True
+    for lo, hi in itertools.pairwise(camera_bounds):
+        seen[cell[lo:hi]] = True
         ascending = np.flatnonzero(seen)
-        number[ascending] = np.arange(first, first + len(ascending))
-        np.take(number, mine, out=index[lo:hi])
+        seen[ascending] = False
         cells.append(ascending.astype(cell.dtype, copy=False))
-        first += len(ascending)
-    per_camera = [len(c) for c in cells]
-    pair_camera = np.repeat(np.arange(n_cams, dtype=np.uint8), per_camera)
-    pair_cell = np.concatenate(cells) if cells else np.empty(0, cell.dtype)
-    return index, pair_cell, pair_camera
+    return cells
 
 
 @dataclass(frozen=True)
@@ -167,17 +170,39 @@ class CellMoments:
     def of(
         cls, points: np.ndarray, camera: np.ndarray, cell: np.ndarray, n_cells: int, n_cams: int
     ) -> CellMoments:
-        """One pass over all points: each pair's sums add its points in their order, as a
-        bincount per camera would."""
-        index, pair_cell, pair_camera = _camera_cell_pairs(camera, cell, n_cells, n_cams)
+        """Each pair's sums add its points in their order, as a bincount per camera would.
+
+        Points that come camera by camera (a fused cloud) are summed a camera at a time into
+        that camera's slice of the pairs: a pair's points are all its camera's, so each sum
+        adds the same values in the same order as one bincount over all the points, to the
+        bit, while the index, the float64 columns bincount reads and their temporaries are one
+        camera's, not the cloud's (12 m silo at 1 cm, 5.2 M points of 8 cameras: three
+        5.2 M-point float64 / intp arrays, 125 MB of fresh pages, no longer made; see the
+        commit for the timings). Points in any other order: one bincount each over a sort of
+        their (camera, cell) keys."""
+        if len(camera) and np.any(camera[1:] < camera[:-1]):
+            index, pair_cell, pair_camera = _sorted_pairs(camera, cell, n_cells)
+            sums = _pair_sums(points, index, len(pair_cell))
+            return cls(pair_cell, pair_camera, *sums, n_cells, n_cams)
+        bounds = np.searchsorted(camera, np.arange(n_cams + 1)).tolist()
+        cells = _camera_cells(bounds, cell, n_cells)
+        sizes = [len(c) for c in cells]
+        pair_cell = np.concatenate(cells) if cells else np.empty(0, cell.dtype)
+        del cells
+        pair_camera = np.repeat(np.arange(n_cams, dtype=np.uint8), sizes)
         n = len(pair_cell)
-        count = np.bincount(index, None, n)
-        sum_x = np.bincount(index, points[:, 0], n)
-        sum_y = np.bincount(index, points[:, 1], n)
-        z = points[:, 2].astype(np.float64)
-        sum_z = np.bincount(index, z, n)
-        z *= z  # squared in place: one float64 column less at the peak
-        sum_zz = np.bincount(index, z, n)
+        count = np.empty(n, np.intp)  # bincount's own count type
+        sum_x, sum_y, sum_z, sum_zz = (np.empty(n) for _ in range(4))
+        number = np.empty(n_cells, np.intp)  # read only where written: a camera's own cells
+        first = 0
+        for (lo, hi), size in zip(itertools.pairwise(bounds), sizes, strict=True):
+            pairs = slice(first, first + size)
+            number[pair_cell[pairs]] = np.arange(size)
+            local = np.take(number, cell[lo:hi])
+            mine = _pair_sums(points[lo:hi], local, size)
+            for whole, part in zip((count, sum_x, sum_y, sum_z, sum_zz), mine, strict=True):
+                whole[pairs] = part
+            first += size
         return cls(pair_cell, pair_camera, count, sum_x, sum_y, sum_z, sum_zz, n_cells, n_cams)
 
     def camera_slices(self) -> list[slice]:
