@@ -9,6 +9,7 @@ import pytest
 
 from silo_agent.grid.geometry import _boundary_band, cell_fractions, grid_shape, points_in_polygon
 from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct.cells import segment_sums
 from silo_agent.reconstruct.fuse import CameraPairs, CellMoments, FusedCloud
 from silo_agent.reconstruct.residual import MAX_SLOPE, MAX_SPREAD_M, registration_residuals
 
@@ -156,3 +157,24 @@ def test_cut_cells_by_scanlines_are_the_even_odd_test_of_every_sample(polygon, c
     sy = origin[1] + (rows[:, None] + 0.5) * step + oy.ravel()[None, :]
     np.testing.assert_array_equal(fraction[band], points_in_polygon(sx, sy, polygon).mean(axis=1))
     assert np.any((fraction[band] > 0) & (fraction[band] < 1)) == cuts
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64])
+def test_segment_sums_are_reduceat(dtype: type[np.signedinteger]) -> None:
+    rng = np.random.default_rng(3)
+    values = rng.integers(0, 1000, 5000).astype(dtype)
+    starts = np.flatnonzero(np.r_[True, rng.random(4999) < 0.4])
+    expected = np.add.reduceat(values, starts)
+    kept = values.copy()
+    got = segment_sums(values, starts)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(values, kept)  # read, not overwritten
+    narrow = segment_sums(values, starts, np.int32)
+    assert narrow.dtype == np.int32
+    np.testing.assert_array_equal(narrow, expected)
+    if dtype == np.int64:  # the running total, in place
+        np.testing.assert_array_equal(segment_sums(values, starts, overwrite=True), expected)
+        np.testing.assert_array_equal(values, np.cumsum(kept))
+    one = segment_sums(values.copy(), np.array([0]))
+    np.testing.assert_array_equal(one, [values.sum()])

@@ -118,6 +118,28 @@ def voxel_downsample(
     return (sums / counts[:, None]).astype(np.float32), camera[order][starts]
 
 
+def segment_sums(
+    values: np.ndarray,
+    starts: np.ndarray,
+    dtype: type[np.signedinteger] = np.int64,
+    overwrite: bool = False,
+) -> np.ndarray:
+    """`np.add.reduceat(values, starts)` for integers and ascending `starts` (the first 0):
+    differences of one running total, in `dtype`, at the runs' ends. Integer sums are exact
+    in any order, so the same values while the total fits `dtype`; 2.4x faster on the 12 m
+    silo's 2.9 M segments in 2.2 M height bins at 1 cm (7.9 against 19.0 ms), where reduceat
+    pays per run. `overwrite`: `values`, of `dtype`, become the running total (no copy at the
+    clustering's peak)."""
+    total = np.cumsum(values, dtype=dtype, out=values if overwrite else None)
+    last = np.empty(len(starts), np.intp)
+    last[:-1] = starts[1:]
+    last[-1:] = len(values)
+    last -= 1
+    sums = total[last]
+    sums[1:] -= total[last[:-1]]
+    return sums
+
+
 @dataclass(frozen=True)
 class _Segments:
     """The runs of the sorted key, one per (cell, height bin, camera) holding points."""
@@ -177,7 +199,7 @@ def _segments(
     np.subtract(s_start[1:], s_start[:-1], out=s_n[:-1], casting="unsafe")
     s_n[-1:] = len(key) - s_start[-1:]
     key &= fine_mask
-    s_fine = np.add.reduceat(key, s_start)  # heights within the bin, summed
+    s_fine = segment_sums(key, s_start, overwrite=True)  # heights within the bin, summed
     del key
     s_key = segment_key[s_start]
     del segment_key, s_start
@@ -205,7 +227,7 @@ def _clusters(
     are runs of core bins in a cell, split by a gap of more than eps."""
     s_n, s_bin, height_bits = segments.count, segments.bin, segments.height_bits
     b_start = run_starts(s_bin)
-    b_n = np.add.reduceat(s_n, b_start)
+    b_n = segment_sums(s_n, b_start, np.int32)  # points per bin: a scan's fit (base/limits.py)
     b_key = s_bin[b_start]
     b_cell = (b_key >> height_bits).astype(np.int32)  # the grid's cells fit (base/limits.py)
     cell_of_bins = run_starts(b_cell)
@@ -213,8 +235,8 @@ def _clusters(
     adjacent = b_key[1:] - b_key[:-1] == 1
     adjacent[cell_of_bins[1:] - 1] = False
     density = b_n.copy()
-    density[1:] += np.where(adjacent, b_n[:-1], 0)
-    density[:-1] += np.where(adjacent, b_n[1:], 0)
+    np.add(density[1:], b_n[:-1], out=density[1:], where=adjacent)
+    np.add(density[:-1], b_n[1:], out=density[:-1], where=adjacent)
     del adjacent, b_n
     bins_per_cell = np.diff(np.append(cell_of_bins, len(b_key)))
     peak = np.repeat(np.maximum.reduceat(density, cell_of_bins), bins_per_cell)
