@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from silo_agent.config import ReconstructionConfig
+from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
+from silo_agent.reconstruct.level import level_scan
 from silo_agent.scan import Scan, write_scan
 from tests.support.cli import run_cli
 
@@ -62,7 +63,8 @@ def test_each_json_line_is_the_scans_own_result(
     results = _lines(done.stdout)
     settings = ReconstructionConfig(grid_step_m=float(STEP))
     for result, scan in zip(results, [cone_scan_4, cone_scan_2], strict=True):
-        assert result["volume_m3"] == reconstruct(scan, settings).volume_m3
+        leveled, _, _ = level_scan(scan, CalibrationConfig())  # the default outside bins
+        assert result["volume_m3"] == reconstruct(leveled, settings).volume_m3
     assert done.stderr.splitlines() == ["silo-agent: 2 of 2 scans processed"]
 
 

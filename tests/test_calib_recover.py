@@ -180,3 +180,30 @@ def test_per_scan_leveling_is_bounded_and_wants_bare_flat_floor(perturbed) -> No
     kept, corrections, notes = level_scan(covered, CalibrationConfig(level=True))
     assert kept is covered and corrections == {}
     assert notes == [f"level: sim-{v} sees no bare floor; extrinsic unchanged" for v in VIEWS]
+
+
+def test_every_scan_is_leveled_by_default_outside_bins_only(perturbed) -> None:
+    from silo_agent.analysis.scan_analysis import analyse
+    from silo_agent.config import DetectionConfig
+
+    scan, truth = perturbed
+    default = CalibrationConfig()
+    assert scan.site.bin is None and scan.site.base == "floor"
+    assert default.level == "auto" and default.levels(False, "floor")
+    assert not CalibrationConfig(level=False).levels(False, "floor")
+    # in a bin (grain covers the floor) or on sloping ground: only when asked
+    assert not default.levels(True, "floor") and CalibrationConfig(level=True).levels(True, "floor")
+    assert not default.levels(False, "boundary")
+
+    # the analysis every path runs levels the knocked cameras by default
+    analysed = analyse(scan, ReconstructionConfig(), DetectionConfig(), calibration=default)
+    leveled = analysed.reconstruction.parameters["leveled"]
+    assert sorted(leveled) == sorted(truth)
+    assert all(
+        0.1 < degrees < 0.5 and metres > 0.005
+        for degrees, metres in map(lambda c: (c["turned_deg"], c["moved_m"]), leveled.values())
+    )
+    off = analyse(
+        scan, ReconstructionConfig(), DetectionConfig(), calibration=CalibrationConfig(level=False)
+    )
+    assert "leveled" not in off.reconstruction.parameters

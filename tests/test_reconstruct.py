@@ -9,10 +9,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from silo_agent.config import ReconstructionConfig
+from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.grid.geometry import cell_fractions, polygon_area, transform_from_euler
 from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill
+from silo_agent.reconstruct.level import level_scan
 from silo_agent.scan import CameraCloud, Scan, Site, write_scan
 from tests.support.cli import run_cli
 from tests.support.synthetic import Scene, cone, frustum_on_slab, look_at, observe, ring_views
@@ -298,7 +299,9 @@ def test_process_json_is_one_object_and_reproducible(tmp_path, cone_scan_4: Scan
     assert set(summary["surface"]) >= {"min_z", "mean_z", "max_z"}
     assert summary["grid_step_m"] == 0.05
     assert summary["mass_t"] == pytest.approx(summary["volume_m3"] * 0.58)
-    direct = reconstruct(scan, ReconstructionConfig(grid_step_m=0.05))
+    # process levels each camera on the floor it sees first (the default outside bins)
+    leveled, _, _ = level_scan(scan, CalibrationConfig())
+    direct = reconstruct(leveled, ReconstructionConfig(grid_step_m=0.05))
     assert summary["volume_m3"] == direct.volume_m3
     strip = lambda s: {k: v for k, v in json.loads(s).items() if k != "timings_s"}  # noqa: E731
     assert strip(first.stdout) == strip(second.stdout)

@@ -15,8 +15,9 @@ from silo_agent.storage.audit import comparable
 from silo_agent.telemetry.payloads import check_summary
 from tests.support.agent import Daemon, write_config
 
-REFINE = "\n[calibration]\nrefine = true\n"
-PER_SCAN = {"plain": "", "refine": REFINE, "level": "\n[calibration]\nlevel = true\n"}
+REFINE = "\n[calibration]\nrefine = true\nlevel = false\n"
+PLAIN = "\n[calibration]\nlevel = false\n"
+PER_SCAN = {"plain": PLAIN, "refine": REFINE, "level": "\n[calibration]\nlevel = true\n"}
 
 
 def _replay(directory: Path, capsys: pytest.CaptureFixture) -> str:

@@ -19,7 +19,7 @@ from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, 
 from silo_agent.detect.geometric import Surface, detect_piles, grid_of
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.volume import base_surface
-from silo_agent.reconstruct import Reconstruction, reconstruct
+from silo_agent.reconstruct import Reconstruction, reconstruct, released
 from silo_agent.scan import Scan, Site
 
 if TYPE_CHECKING:
@@ -60,9 +60,10 @@ def analyse(
 ) -> ScanAnalysis:
     """Reconstruct `scan` and detect its piles (and robot) as `detection` configures.
 
-    `calibration` sets how the registration residual is measured; with `level` on, each camera
-    that sees bare floor is leveled on it first, and with `refine` on, a bounded registration
-    of the overlaps adjusts the scan's extrinsics (silo_agent.calibrate).
+    `calibration` sets how the registration residual is measured; with `level` on (by default
+    outside bins), each camera that sees bare floor is leveled on it first
+    (silo_agent.reconstruct.level), and with `refine` on, a bounded registration of the
+    overlaps adjusts the scan's extrinsics (silo_agent.calibrate).
 
     Parameters
     ----------
@@ -101,14 +102,18 @@ def analyse(
 
         found = locate(YoloModel(onnx.model), scan.cameras, onnx.confidence, onnx.iou)
         robots = robots_of(found, onnx.robot_classes)
-    scan, adjusted = _per_scan_calibration(scan, calibration, site)
+    release_points = release_points and onnx is None
+    adjusted_scan, adjusted = _per_scan_calibration(scan, calibration, site)
+    if release_points and adjusted_scan is not scan:
+        released(scan)  # the caller's copy: the adjusted scan holds the same points
+    scan = adjusted_scan
     result = reconstruct(
         scan,
         settings,
         site,
         exclude=[r.disc for r in robots],
         calibration=calibration,
-        release_points=release_points and onnx is None,
+        release_points=release_points,
     )
     result.parameters |= adjusted
     found_robots = robots if onnx is not None else None
@@ -137,7 +142,7 @@ def _per_scan_calibration(
     said: dict[str, Any] = {}
     if calibration is None:
         return scan, said
-    if calibration.level:
+    if calibration.levels(site.bin is not None, site.base):
         from silo_agent.reconstruct.level import level_scan
 
         scan, leveled, notes = level_scan(scan, calibration, site)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import (
     Field,
     model_validator,
@@ -76,9 +78,10 @@ class CalibrationConfig(Strict):
     refine: bool = Field(
         default=False, description="every scan: bounded ICP on the overlaps before reconstructing"
     )
-    level: bool = Field(
-        default=False,
-        description="every scan: each camera that sees bare floor is leveled on it (as --floor)",
+    level: Literal["auto"] | bool = Field(
+        default="auto",
+        description="every scan: each camera that sees bare floor is leveled on it (as --floor); "
+        "auto: on a site without [silo.bin] whose base is the floor",
     )
     refine_max_deg: float = Field(
         default=0.5, gt=0, description="per-scan bound of refine's and level's corrections"
@@ -89,3 +92,14 @@ class CalibrationConfig(Strict):
     spacing: list[SpacingConfig] = Field(
         default=[], description="measured camera-to-camera distances calibrate holds to"
     )
+
+    def levels(self, in_bin: bool, base: str) -> bool:
+        """Whether every scan on a site is leveled on its floor (`in_bin`: the site has
+        `[silo.bin]`; `base`: its `silo.base`): `level`, or for "auto" on a site without a bin
+        whose base is the floor. With 0.1 deg / 3 mm placement errors it
+        took the open scenes' volume error from 0.96 / 0.99 / 1.35 % to 0.50 / 0.45 / 0.18 %
+        with 2 / 3 / 4 views (docs/calibration.md); in a bin the grain covers the floor, and
+        thin level grain would be taken for it."""
+        if self.level != "auto":
+            return self.level
+        return not in_bin and base == "floor"
