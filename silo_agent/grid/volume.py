@@ -242,34 +242,46 @@ def _smooth_sigma(
     doubles it). The same figure at every grid step."""
     factor = max(1, round(CLIP_BLOCK_M / grid.step))
     side = factor * grid.step
+    inside = region.astype(np.float64)
     density = np.where(region, information, 0.0)
     if factor > 1:  # over the block's cells in the region
-        both = np.stack([density, region.astype(np.float64)])
+        both = np.stack([density, inside])
         density, share = ndimage.uniform_filter(both, factor, mode="constant", axes=(-2, -1))
         density = np.divide(density, share, out=np.zeros_like(density), where=share > 0)
     measured = region & (density > CLIP_MIN_DENSITY * float(density.max(initial=0.0)))
     variance = np.divide(1.0 / (side * side), density, out=np.zeros(region.shape), where=measured)
-    weight, total = _block_smooth(
-        [region.astype(np.float64), variance], max(scale_m / grid.step, 1.0)
-    )
+    sigma_cells = max(scale_m / grid.step, 1.0)
+    weight, total = _block_smooth([inside, variance], sigma_cells)
     with np.errstate(invalid="ignore", divide="ignore"):
         spread = _kernel_share(scale_m / side) * total / np.square(weight)
-    return np.where(region & (weight > 1e-12), np.sqrt(np.maximum(spread, 0.0)), 0.0)
+    sigma = np.where(weight > 1e-12, np.sqrt(np.maximum(spread, 0.0)), 0.0)
+    return np.where(region, _block_cells(sigma, _smooth_block(sigma_cells), region.shape), 0.0)
+
+
+def _smooth_block(sigma_cells: float) -> int:
+    """`_block_smooth`'s block side in cells: a quarter of the scale."""
+    return max(1, int(sigma_cells // 4))
 
 
 def _block_smooth(layers: list[np.ndarray], sigma_cells: float) -> list[np.ndarray]:
     """Each layer's kernel-weighted mean: `masked_smooth`'s two box passes (about a Gaussian of
     `sigma_cells`), zero outside the grid. On blocks of a quarter of the scale (the kernel
-    still 4+ blocks wide; noise levels change over it), each block's mean given back to its
-    cells: on a 1 cm grid they cost a 25th or less."""
-    block = max(1, int(sigma_cells // 4))
+    still 4+ blocks wide; noise levels change over it): the blocks' means (in float64), which
+    `_block_cells` gives back to their cells once whatever is computed from them is (on a
+    1 cm grid they cost a 25th or less)."""
+    block = _smooth_block(sigma_cells)
     coarse = np.stack([block_sums(layer, block) for layer in layers]).astype(np.float32)
     size = max(3, 2 * round(sigma_cells / block * np.sqrt(6) / 2) + 1)
     for _ in range(2):
         coarse = ndimage.uniform_filter(coarse, size, mode="constant", axes=(-2, -1))
-    rows, cols = layers[0].shape
-    fine = np.repeat(np.repeat(coarse / block**2, block, axis=1), block, axis=2)
-    return list(fine[:, :rows, :cols].astype(np.float64))
+    return list((coarse / block**2).astype(np.float64))
+
+
+def _block_cells(values: np.ndarray, block: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Each block's value at each of its cells, on a grid of `shape`."""
+    blocks_r, blocks_c = values.shape
+    cells = np.broadcast_to(values[:, None, :, None], (blocks_r, block, blocks_c, block))
+    return cells.reshape(blocks_r * block, blocks_c * block)[: shape[0], : shape[1]]
 
 
 def surface_levels(grid: Grid, heights: np.ndarray) -> Levels:
