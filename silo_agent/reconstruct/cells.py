@@ -119,18 +119,14 @@ def voxel_downsample(
 
 
 def segment_sums(
-    values: np.ndarray,
-    starts: np.ndarray,
-    dtype: type[np.signedinteger] = np.int64,
-    overwrite: bool = False,
+    values: np.ndarray, starts: np.ndarray, dtype: type[np.signedinteger] = np.int64
 ) -> np.ndarray:
     """`np.add.reduceat(values, starts)` for integers and ascending `starts` (the first 0):
     differences of one running total, in `dtype`, at the runs' ends. Integer sums are exact
     in any order, so the same values while the total fits `dtype`; 2.4x faster on the 12 m
     silo's 2.9 M segments in 2.2 M height bins at 1 cm (7.9 against 19.0 ms), where reduceat
-    pays per run. `overwrite`: `values`, of `dtype`, become the running total (no copy at the
-    clustering's peak)."""
-    total = np.cumsum(values, dtype=dtype, out=values if overwrite else None)
+    pays per run."""
+    total = np.cumsum(values, dtype=dtype)
     last = np.empty(len(starts), np.intp)
     last[:-1] = starts[1:]
     last[-1:] = len(values)
@@ -195,18 +191,30 @@ def _segments(
     key.sort(kind=None if SIMD_SORT else "stable")
     segment_key = key >> bin_bits
     s_start = run_starts(segment_key)
+    s_key = segment_key[s_start]
+    del segment_key
     s_n = np.empty(len(s_start), np.int32)  # the runs' lengths, written as int32 at once
     np.subtract(s_start[1:], s_start[:-1], out=s_n[:-1], casting="unsafe")
     s_n[-1:] = len(key) - s_start[-1:]
+    # the heights within the bin, summed per segment: differences of their running total at
+    # the segments' ends (integers: exact, the sums reduceat gave), in place in the key and
+    # the starts, so no array more than reduceat's made; 2-3x faster than reduceat, which pays
+    # per run (the 12 m silo at 1 cm: 2.9 M segments of 3.3 M points)
     key &= fine_mask
-    s_fine = segment_sums(key, s_start, overwrite=True)  # heights within the bin, summed
-    del key
-    s_key = segment_key[s_start]
-    del segment_key, s_start
+    np.cumsum(key, out=key)
+    s_start[:-1] = s_start[1:]  # each segment's last point: the next one's start, less one
+    s_start[-1:] = len(key)
+    s_start -= 1
+    s_end_total = key[s_start]
+    del key, s_start
     s_cam = (s_key & ((1 << cam_bits) - 1)).astype(np.uint8)
     s_bin = s_key >> cam_bits  # (cell, height bin)
     del s_key
-    s_z_sum = (s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits) + s_fine) * Z_QUANTUM_M
+    s_quanta = s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits)  # whole bins, then fine
+    s_quanta += s_end_total
+    s_quanta[1:] -= s_end_total[:-1]
+    del s_end_total
+    s_z_sum = s_quanta * Z_QUANTUM_M
     return _Segments(s_n, s_cam, s_bin, s_z_sum, z0, height_bits, Z_QUANTUM_M * (1 << bin_bits))
 
 
