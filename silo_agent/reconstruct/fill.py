@@ -485,7 +485,8 @@ class _LatticeMeans:
     lattice of a 1 cm grid a ninth of the cells; the bay batch of bench/silos.py (b): the
     repose bounds 66 ms a scan with six filters of the 1 cm grid and their samples, 33 ms
     so). The same values to rounding (the sums in another order: the bounds within 8e-16 m,
-    `process --json` and bench/accuracy.py's fills table unchanged)."""
+    `process --json`'s heights and positions within 3e-16 m, bench/accuracy.py's table
+    unchanged)."""
 
     def __init__(self, shape: tuple[int, ...], sigma: float, spacing: float) -> None:
         self.axes = [np.arange(0.0, n - 1 + 1e-9, spacing) for n in shape]
