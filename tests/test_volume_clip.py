@@ -13,12 +13,14 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate
+from scipy import integrate, ndimage
 from scipy.stats import norm
 
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.smooth import masked_smooth
 from silo_agent.grid.volume import (
+    _block_smooth,
+    _kernel_share,
     _smooth_sigma,
     clip_excess,
     counted_heights,
@@ -171,3 +173,28 @@ def test_a_fill_under_the_base_counts_nothing() -> None:
     counted = _counted(grid, heights, information)
     far = np.s_[:, CELLS // 2 + 25 :]  # 1 m into the fill: the kernel reads fill only
     assert np.allclose(counted[far], 0.0, atol=1e-9)
+
+
+def test_the_smooth_sigma_is_its_blocks_given_to_their_cells() -> None:
+    """Computed on `_block_smooth`'s blocks and given back to the cells, the sigma is the same
+    to the bit as the same arithmetic on every cell, on a grid that is no whole number of
+    blocks and a region with holes."""
+    rng = np.random.default_rng(5)
+    grid = Grid(origin=(0.0, 0.0), step=0.01, shape=(233, 187), inside=np.ones((233, 187)))
+    region = rng.random(grid.shape) < 0.8
+    information = np.where(rng.random(grid.shape) < 0.5, rng.random(grid.shape) * 1e8, 0.0)
+    got = _smooth_sigma(grid, information, region, SCALE_M)
+    # the former per-cell arithmetic: the blocks' means on every cell, then the sigma
+    density = np.where(region, information, 0.0)
+    both = np.stack([density, region.astype(np.float64)])
+    density, share = ndimage.uniform_filter(both, 5, mode="constant", axes=(-2, -1))
+    density = np.divide(density, share, out=np.zeros_like(density), where=share > 0)
+    measured = region & (density > 1e-3 * float(density.max()))
+    variance = np.divide(1.0 / 0.05**2, density, out=np.zeros(grid.shape), where=measured)
+    coarse = _block_smooth([region.astype(np.float64), variance], SCALE_M / 0.01)
+    weight, total = (np.repeat(np.repeat(c, 5, axis=0), 5, axis=1)[:233, :187] for c in coarse)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = _kernel_share(SCALE_M / 0.05) * total / np.square(weight)
+    expected = np.where(region & (weight > 1e-12), np.sqrt(np.maximum(spread, 0.0)), 0.0)
+    np.testing.assert_array_equal(got, expected)
+    assert np.all(got[~region] == 0.0) and np.any(got > 0)
