@@ -58,6 +58,13 @@ class BinShape:
         return math.degrees(math.atan2(self.hopper_depth_m, run))
 
     @property
+    def hopper_slope(self) -> float:
+        """Rise per metre of the hopper's cone (0 without a hopper)."""
+        if self.floor != "hopper":
+            return 0.0
+        return self.hopper_depth_m / (self.radius_m - self.outlet_radius_m)
+
+    @property
     def roof_peak_z(self) -> float:
         """Top of the roof: a cone over a round wall, a pyramid-like rise over a polygon's
         inscribed half-width otherwise."""
@@ -99,6 +106,34 @@ class BinShape:
             along = (x - self.centre[0]) * ux + (y - self.centre[1]) * uy
             return self.floor_z - fall * along
         return np.full(np.broadcast(x, y).shape, self.floor_z)
+
+    def bottom_slope(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Rise per metre of the bin's bottom under each (x, y): a hopper's cone between the
+        outlet and the wall, a sloped floor's tilt, 0 on a flat floor or over the outlet."""
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        shape = np.broadcast(x, y).shape
+        if self.floor == "hopper":
+            r = np.hypot(x - self.centre[0], y - self.centre[1])
+            inside = (r > self.outlet_radius_m) & (r < self.radius_m)
+            return np.where(inside, self.hopper_slope, 0.0)
+        if self.floor == "sloped":
+            return np.full(shape, math.tan(math.radians(self.floor_slope_deg)))
+        return np.zeros(shape)
+
+    def uphill_lines(
+        self, x: np.ndarray, y: np.ndarray, spacing_m: float
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """(line, along, lines) of each (x, y) on a hopper's cone: which of its `lines` lines
+        of steepest ascent (sectors about `spacing_m` wide at the wall, numbered round it) it
+        lies on, and how far up it (the distance from the centre). Not for other floors."""
+        if self.floor != "hopper":
+            raise ValueError("uphill lines are a hopper's")
+        dx = np.asarray(x, dtype=float) - self.centre[0]
+        dy = np.asarray(y, dtype=float) - self.centre[1]
+        sectors = max(8, round(2 * np.pi * self.radius_m / spacing_m))
+        turn = (np.arctan2(dy, dx) + np.pi) / (2 * np.pi)  # 0..1
+        line = np.minimum((turn * sectors).astype(np.intp), sectors - 1)
+        return line, np.hypot(dx, dy), sectors
 
     def hopper_volume_m3(self) -> float:
         """The cone frustum below the floor plane (0 without a hopper)."""

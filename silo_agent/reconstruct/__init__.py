@@ -49,6 +49,7 @@ from silo_agent.reconstruct.trust import blob_scale, cell_information
 from silo_agent.reconstruct.walls import (
     FirstSurface,
     WallCrossing,
+    bare_bottom,
     reseat_level,
     reseated,
     wall_free,
@@ -610,7 +611,20 @@ def _reconstruct(
     del sub_counts
     bin_cells = _BinCells(grid, site.bin) if site.bin is not None else None
     band = _wall_band(grid, bin_cells, observed)
-    seen = observed & band  # measured cells of the band: covered, though filled
+    if bin_cells is not None and information is not None and site.base == "floor":
+        # a hopper's bare cone: filled, held up by the steel below (site.base "floor")
+        bare = bare_bottom(
+            grid,
+            bin_cells.shape,
+            cells.height,
+            observed,
+            bin_cells.bottom,
+            information,
+            settings.repose_slope,
+        )
+        if np.any(observed & ~band & ~bare):  # an empty hopper keeps its measured steel
+            band |= bare
+    seen = observed & band  # measured cells of the band or bare steel: covered, though filled
     observed &= ~band
     fill = settings.fill_for(site.bin is not None)
     parameters = {

@@ -37,6 +37,9 @@ RESEAT_SCALE_M = 0.4  # the first pass's surface, smoothed at this scale, gives 
 RESEAT_MIN_FALL = 0.1  # rays within ~6 deg of the surface are left where the noise put them
 RESEAT_MAX_SIGMAS = 3.0  # no point moves along its ray by more than this many depth RMS
 CHUNK_POINTS = 1 << 16  # per-point work a chunk at a time: its temporaries stay in cache
+BARE_SCALE_M = 0.5  # bare steel is told from grain on the surface smoothed at this scale ...
+BARE_SIGMAS = 4.0  # ... by standing within this many of that mean's noise sigmas of the steel
+BARE_LINES_MEDIAN = 5  # a hopper's cut up the cone: the median of this many neighbouring lines
 
 
 def smoothed_depth(
@@ -464,3 +467,83 @@ def reseated(cloud: CameraCloud, first: FirstSurface, noise_factor: float) -> Ca
         # back to the camera frame: R^T (p - o), row-wise, on (N, 3) rows as before
         points[rows] = np.ascontiguousarray(moved.T) @ rotation
     return replace(cloud, points=points)
+
+
+def bare_bottom(
+    grid: Grid,
+    shape: BinShape,
+    heights: np.ndarray,
+    observed: np.ndarray,
+    bottom: np.ndarray,
+    information: np.ndarray,
+    repose_slope: float,
+) -> np.ndarray:
+    """The measured cells that are a hopper's bare cone, not grain: left to the fill, which
+    the steel holds up, they count nothing (none without a hopper steeper than `repose_slope`).
+
+    Grain cannot lie on a cone steeper than its angle of repose in a thin layer (a hopper is
+    built so that it slides off): where its surface meets the steel it leaves it as a wedge
+    (a crater's rim in a drawn-down hopper), and up the cone from bare steel there is none. A
+    measured cell of bare steel reads the steel plus noise, and counts that noise into the
+    volume: clipped at the steel, the half above it, and over a ring of bare cone the noise
+    blobs of 8-10 cm a few metres from an eave camera average to +-3 mm, +-5 mm with a 0.1 deg
+    placement error (a hopper drawn down: 27 m^2 of bare cone around 11 m^3 of grain, +-1 %).
+
+    A cell looks thin where its measured `heights`, averaged over BARE_SCALE_M, stand within
+    BARE_SIGMAS of that mean's noise (from the cameras' `information`, trust.py) of the
+    `bottom` (four: a 0.1 deg placement error adds its own offset to the steel, and at three
+    5-10 % of a drawn-down hopper's bare cone looked thick). Noise makes some bare cells look
+    thick and some grain thin, and keeping the thick-looking ones of a bare cone kept exactly
+    those that read high; so the cone is cut along each of its lines of steepest ascent
+    (`BinShape.uphill_lines`, sectors BARE_SCALE_M wide at the wall) at the one point above
+    which it is bare: where the fewest cells look thin below it and thick above. The contact
+    moves little from a line to the next, and a line takes the median cut of BARE_LINES_MEDIAN
+    around it. The wedge's edge, averaged, looks thicker than it is: the cut falls up to a few
+    tenths of a metre up the steel, whose cells below it count their noise as before; where
+    the cone is barely steeper than the repose, it may fall on the wedge's thin edge, whose
+    cells are then filled from the grain beside them."""
+    none = np.zeros(grid.shape, dtype=bool)
+    if shape.floor != "hopper" or not shape.hopper_depth_m > 0:
+        return none
+    x, y = grid.centres()
+    candidates = observed & (shape.bottom_slope(x, y) > repose_slope)
+    if not np.any(candidates):
+        return none
+    scale = max(BARE_SCALE_M / grid.step, 1.0)
+    measured = observed & (information > 0)
+    relative = masked_smooth(np.where(observed, heights - bottom, 0.0), observed, scale)
+    # a mean over area A of a surface known with information density I is known to
+    # 1 / sqrt(A I); a Gaussian of sigma s weighs an area of 4 pi s^2, and the harmonic mean
+    # of I over it sets the noise
+    spread = np.divide(1.0, information, out=np.zeros(grid.shape), where=measured)
+    variance = masked_smooth(spread, measured, scale) / (4 * np.pi * BARE_SCALE_M**2)
+    with np.errstate(invalid="ignore"):  # NaN away from any measured cell: not thin
+        thin = relative < BARE_SIGMAS * np.sqrt(variance)
+    cells = np.flatnonzero(candidates)
+    line, along, lines = shape.uphill_lines(x.ravel()[cells], y.ravel()[cells], BARE_SCALE_M)
+    order = np.lexsort((along, line))
+    line, along, looks = line[order], along[order], thin.ravel()[cells[order]]
+    starts = np.flatnonzero(np.r_[True, line[1:] != line[:-1]])
+    sizes = np.diff(np.r_[starts, len(line)])
+    group = np.repeat(np.arange(len(starts)), sizes)
+    below = np.arange(len(line)) - starts[group]  # the line's cells below each
+    thin_below: np.ndarray = np.cumsum(looks) - looks
+    thin_below -= thin_below[starts][group]
+    # cut just below a cell: its thin cells below are grain that looked thin, its thick ones
+    # from it up bare steel that looked thick; up to a constant of the line, 2 thin_below - below
+    cost = 2 * thin_below - below
+    best = np.lexsort((-below, cost, group))  # per line, the least cost, the highest cut on a tie
+    first = best[np.r_[True, group[best][1:] != group[best][:-1]]]
+    total_thin = np.add.reduceat(looks.astype(np.intp), starts)
+    found = np.where(cost[first] < 2 * total_thin - sizes, along[first], np.inf)  # else none
+    # the contact moves little from a line to the next (the grain's surface along it rises no
+    # faster than its repose): a line whose noise hid or moved its cut takes its neighbours'
+    cuts = np.full(lines, np.inf)
+    cuts[line[starts]] = found
+    cuts = ndimage.median_filter(cuts, BARE_LINES_MEDIAN, mode="wrap")
+    cut = cuts[line[starts]]
+    bare = np.zeros(len(cells), dtype=bool)
+    bare[order] = along >= cut[group]
+    out = none
+    out.ravel()[cells] = bare
+    return out
