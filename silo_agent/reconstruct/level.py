@@ -20,6 +20,7 @@ FLOOR_RANSAC_TRIALS = 1000  # candidate planes, each through 3 random points
 FLOOR_RANSAC_SCORED = 2000  # points on which every candidate is scored (a fixed random subset)
 FLOOR_REFINE_DISTANCE_M = 0.03  # points this close to the RANSAC plane refine it (least squares)
 FLOOR_MIN_POINTS = 500  # fewer floor inliers: this camera does not see the floor
+FLOOR_ROUGH_MARGIN_M = 0.001  # the float32 pre-test's band is this much wider than floor_band_m
 FLOOR_CELL_M = 0.10  # cells in which a pile's foot is told from the floor
 FLOOR_OFF_M = 0.015  # a cell whose points average this far off the plane is not floor
 FLOOR_MARGIN_CELLS = 2  # and neither are its neighbours this many cells around
@@ -87,10 +88,15 @@ def floor_points(
     """
     from scipy import ndimage
 
-    # the range and the floor band first, on the float32 cloud, so that a camera that sees no
-    # floor (a wall camera at range, grain wall to wall) costs one pass over its points: every
-    # scan runs this outside bins (per-scan leveling), 0.036 -> 0.016 s CPU a four-camera bay scan
+    # every scan outside bins runs this (per-scan leveling): a camera with too few points near
+    # the floor's height (a wall camera at range, grain wall to wall) is let go after one
+    # float32 product with its points (a millimetre's margin covers float32's rounding)
     raw = camera.points
+    rough_z = raw @ extrinsic[2, :3].astype(np.float32) + np.float32(extrinsic[2, 3] - floor_z)
+    rough_band = np.float32(settings.floor_band_m + FLOOR_ROUGH_MARGIN_M)
+    if np.count_nonzero(np.abs(rough_z) <= rough_band) < FLOOR_MIN_POINTS:
+        return np.empty((0, 3)), np.empty(0)
+    del rough_z
     near = np.einsum("ij,ij->i", raw, raw) <= np.float32(settings.floor_max_range_m) ** 2
     cam = raw[near].astype(np.float64)
     z = cam @ extrinsic[2, :3] + extrinsic[2, 3]
