@@ -141,35 +141,58 @@ def points_in_polygon(x: np.ndarray, y: np.ndarray, polygon: np.ndarray) -> np.n
     return inside
 
 
+def _edge_runs(
+    lines_y: np.ndarray, y0: np.ndarray, y1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(edge, line): every pair of a polygon edge (y0 -> y1 at its ends) and a horizontal line
+    of the ascending `lines_y` that the edge crosses, edge by edge, lines ascending within one.
+    The even-odd rule's test (y0 > y) != (y1 > y) is min(y0, y1) <= y < max(y0, y1): a run of
+    the sorted lines, found by two binary searches an edge, not a test of every line against
+    every edge (a round region's 720 edges by a 1 cm grid's 1201 rows: 0.86 M tests)."""
+    first = np.searchsorted(lines_y, np.minimum(y0, y1), side="left")
+    last = np.searchsorted(lines_y, np.maximum(y0, y1), side="left")
+    counts = last - first
+    edge = np.repeat(np.arange(len(first)), counts)
+    line = np.arange(len(edge)) - np.repeat(np.cumsum(counts) - counts, counts) + first[edge]
+    return edge, line
+
+
 def _centres_inside(
     polygon: np.ndarray, origin: tuple[float, float], step: float, shape: tuple[int, int]
 ) -> np.ndarray:
-    """Even-odd test of every cell centre by scanlines: O(rows x edges + cells)."""
+    """Even-odd test of every cell centre by scanlines: O(rows x log edges + crossings + cells).
+    Each crossing flips the parity of the cells right of it: a uint8 XOR running along each
+    row, not an int64 count and its cumulative sum (12 m bin's region at 1 cm: 9.1 -> 0.9 ms
+    with `_edge_runs`)."""
     rows, cols = shape
     yc = origin[1] + (np.arange(rows) + 0.5) * step
     x0, y0 = polygon[:, 0], polygon[:, 1]
     x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    straddles = (y0[None, :] > yc[:, None]) != (y1[None, :] > yc[:, None])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        x_cross = x0 + (yc[:, None] - y0) * (x1 - x0) / (y1 - y0)
-    row, edge = np.nonzero(straddles)
+    edge, row = _edge_runs(yc, y0, y1)
+    x_cross = x0[edge] + (yc[row] - y0[edge]) * (x1 - x0)[edge] / (y1 - y0)[edge]
     # crossings strictly left of centre j: j >= first = floor((x - ox) / step - 0.5) + 1
-    first = np.floor((x_cross[row, edge] - origin[0]) / step - 0.5).astype(np.int64) + 1
-    counts = np.zeros((rows, cols + 1), dtype=np.int64)
-    np.add.at(counts, (row, np.clip(first, 0, cols)), 1)
-    return (np.cumsum(counts, axis=1)[:, :cols] % 2) == 1
+    first = np.floor((x_cross - origin[0]) / step - 0.5).astype(np.int64) + 1
+    parity = np.zeros((rows, cols + 1), dtype=np.uint8)
+    np.bitwise_xor.at(parity, (row, np.clip(first, 0, cols)), 1)
+    np.bitwise_xor.accumulate(parity, axis=1, out=parity)
+    return parity[:, :cols].view(bool)
 
 
 def _boundary_band(
     polygon: np.ndarray, origin: tuple[float, float], step: float, shape: tuple[int, int]
 ) -> np.ndarray:
-    """Cells the polygon's edges pass through (edges sampled at step / 8)."""
+    """Cells the polygon's edges pass through (edges sampled at step / 8). The samples'
+    parameters are np.linspace(0, 1, n)'s of each edge (i x (1 / (n - 1)), the last 1), for
+    all edges at once, not a linspace an edge (720 edges: 3.5 -> 0.8 ms)."""
     rows, cols = shape
     start, end = polygon, np.roll(polygon, -1, axis=0)
     lengths = np.linalg.norm(end - start, axis=1)
     counts = np.maximum(2, np.ceil(lengths / (step / 8)).astype(np.int64) + 1)
     edge = np.repeat(np.arange(len(polygon)), counts)
-    t = np.concatenate([np.linspace(0.0, 1.0, n) for n in counts])
+    ends = np.cumsum(counts)
+    t = np.arange(ends[-1]) - np.repeat(ends - counts, counts)
+    t = t * (1.0 / (counts - 1))[edge]
+    t[ends - 1] = 1.0
     points = start[edge] + t[:, None] * (end - start)[edge]
     col = np.floor((points[:, 0] - origin[0]) / step).astype(np.int64)
     row = np.floor((points[:, 1] - origin[1]) / step).astype(np.int64)
@@ -188,29 +211,19 @@ def _band_fractions(
     supersample: int,
 ) -> np.ndarray:
     """Share of each listed cell's supersample^2 points inside `polygon`, by the even-odd rule
-    on the points' horizontal lines: each line is cut by the edges once (a loop over edges, each
-    cutting a contiguous run of the sorted lines), and a point is inside where an odd number of
-    cuts lie right of it. The same comparisons as `points_in_polygon` on every point, at
-    O(lines x cuts + points) instead of O(points x edges): a round region's 256 edges made
-    that 0.64 s for the boundary band of a 12 m silo at 1 cm."""
+    on the points' horizontal lines: each line is cut by the edges once (`_edge_runs`), and a
+    point is inside where an odd number of cuts lie right of it. The same comparisons as
+    `points_in_polygon` on every point, at O(lines x cuts + points) instead of O(points x
+    edges): a round region's 256 edges made that 0.64 s for the boundary band of a 12 m silo
+    at 1 cm. The cuts for all edges at once and the parity in uint8: 12.7 -> 3.2 ms there."""
     offsets = ((np.arange(supersample) + 0.5) / supersample - 0.5) * step
     band_rows, row_of_cell = np.unique(rows, return_inverse=True)
     centre_y = origin[1] + (band_rows + 0.5) * step
     line_y = (centre_y[:, None] + offsets[None, :]).ravel()  # ascending: rows, then offsets
     x0, y0 = polygon[:, 0], polygon[:, 1]
     x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    cut_line, cut_x = [], []
-    for ax, ay, bx, by in zip(x0, y0, x1, y1, strict=True):
-        if ay == by:
-            continue
-        # lines with (ay > y) != (by > y): y in [min, max) of the edge's ends
-        first = np.searchsorted(line_y, min(ay, by), side="left")
-        last = np.searchsorted(line_y, max(ay, by), side="left")
-        y = line_y[first:last]
-        cut_line.append(np.arange(first, last))
-        cut_x.append(ax + (y - ay) * (bx - ax) / (by - ay))
-    line = np.concatenate(cut_line)
-    x_cut = np.concatenate(cut_x)
+    edge, line = _edge_runs(line_y, y0, y1)
+    x_cut = x0[edge] + (line_y[line] - y0[edge]) * (x1 - x0)[edge] / (y1 - y0)[edge]
     per_line = np.bincount(line, minlength=len(line_y))
     # the cuts as a table, one row per line, padded with -inf (never right of a point)
     order = np.argsort(line, kind="stable")
@@ -220,10 +233,11 @@ def _band_fractions(
     centre_x = origin[0] + (cols + 0.5) * step
     point_x = centre_x[:, None] + offsets[None, :]  # (cells, supersample) along x
     lines_of_cell = row_of_cell[:, None] * supersample + np.arange(supersample)[None, :]
-    right = np.zeros((len(rows), supersample, supersample), dtype=np.int64)
+    odd = np.zeros((len(rows), supersample, supersample), dtype=np.uint8)
     for k in range(table.shape[1]):
-        right += point_x[:, None, :] < table[lines_of_cell, k][:, :, None]
-    return ((right % 2) == 1).mean(axis=(1, 2))
+        odd ^= point_x[:, None, :] < table[lines_of_cell, k][:, :, None]
+    inside = odd.reshape(len(rows), supersample * supersample).sum(axis=1, dtype=np.intp)
+    return np.asarray(inside / (supersample * supersample))
 
 
 def cell_fractions(
@@ -239,10 +253,10 @@ def cell_fractions(
     band of cells the edges pass through is supersampled (supersample^2 points per cell).
     """
     fraction = _centres_inside(polygon, origin, step, shape).astype(float)
-    band = _boundary_band(polygon, origin, step, shape)
-    if np.any(band):
-        rows, cols = np.nonzero(band)
-        fraction[band] = _band_fractions(polygon, origin, step, rows, cols, supersample)
+    band = np.flatnonzero(_boundary_band(polygon, origin, step, shape))
+    if len(band):
+        rows, cols = np.divmod(band, shape[1])
+        fraction.ravel()[band] = _band_fractions(polygon, origin, step, rows, cols, supersample)
     return fraction
 
 
