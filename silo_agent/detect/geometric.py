@@ -65,6 +65,7 @@ def relief(heightmap: HeightMap, base: np.ndarray, background_m: float | None) -
 
 _OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
 _DIAGONAL = float(np.hypot(1, 1))  # a diagonal neighbour's distance in cells
+_BLOCK_ROWS = 32  # `_ascent_basins`' slopes a block of rows at a time: they stay in cache
 
 
 def _ascent_basins(smooth: np.ndarray, domain: np.ndarray) -> np.ndarray:
@@ -75,24 +76,39 @@ def _ascent_basins(smooth: np.ndarray, domain: np.ndarray) -> np.ndarray:
     goes up the cone the cell lies on, so basin boundaries fall on the valley lines. Labels
     number the tops in row-major order. A path never leaves the domain (cells outside it read
     -inf), so the tops are the domain's cells that point at themselves.
+
+    The steepest neighbour is kept as its number in `_OFFSETS` (uint8), a block of rows at a
+    time, and the best slope by `np.fmax` (a NaN slope, -inf - -inf, never wins, as it never
+    compared greater): one masked copy of a byte an offset, not two of float64 and int64 over
+    the whole map. The same pointers (a neighbour wins only where its slope is greater than
+    every earlier one's): 12 m bin at 1 cm (1.44 M cells), the whole function 79 -> 53 ms
+    (the pointers 47-50 -> 22 ms, the rest is the jumping).
     """
     rows, cols = smooth.shape
     values = np.pad(np.where(domain, smooth, -np.inf), 1, constant_values=-np.inf)
-    centre = values[1:-1, 1:-1]
-    best = np.zeros(smooth.shape)
-    target = np.arange(rows * cols).reshape(rows, cols)
-    index = np.pad(target, 1, constant_values=-1)
-    slope = np.empty(smooth.shape)
-    better = np.empty(smooth.shape, dtype=bool)
+    choice = np.zeros(smooth.shape, dtype=np.uint8)  # 0: itself, k + 1: _OFFSETS[k]
+    block = min(rows, _BLOCK_ROWS)
+    best, slope = np.empty((block, cols)), np.empty((block, cols))
+    better = np.empty((block, cols), dtype=bool)
     with np.errstate(invalid="ignore"):  # -inf - -inf outside the domain: never better
-        for dr, dc in _OFFSETS:
-            np.subtract(values[1 + dr : rows + 1 + dr, 1 + dc : cols + 1 + dc], centre, out=slope)
-            if dr and dc:
-                np.divide(slope, _DIAGONAL, out=slope)
-            np.greater(slope, best, out=better)
-            np.copyto(best, slope, where=better)
-            np.copyto(target, index[1 + dr : rows + 1 + dr, 1 + dc : cols + 1 + dc], where=better)
-    pointer = target.ravel()
+        for top in range(0, rows, block):
+            n = min(block, rows - top)
+            high, rise, up, pick = best[:n], slope[:n], better[:n], choice[top : top + n]
+            high.fill(0.0)
+            centre = values[1 + top : 1 + top + n, 1 : cols + 1]
+            for k, (dr, dc) in enumerate(_OFFSETS):
+                near = values[1 + top + dr : 1 + top + n + dr, 1 + dc : cols + 1 + dc]
+                np.subtract(near, centre, out=rise)
+                if dr and dc:
+                    np.divide(rise, _DIAGONAL, out=rise)
+                np.greater(rise, high, out=up)
+                np.fmax(high, rise, out=high)
+                np.copyto(pick, k + 1, where=up)
+    # a neighbour is on the map: one outside it reads -inf, never uphill
+    step = np.array([0] + [dr * cols + dc for dr, dc in _OFFSETS])
+    pointer = np.arange(rows * cols)
+    pointer += step[choice.ravel()]
+    del choice
     while True:
         jumped = pointer[pointer]
         if np.array_equal(jumped, pointer):
@@ -107,18 +123,26 @@ def _ascent_basins(smooth: np.ndarray, domain: np.ndarray) -> np.ndarray:
 
 def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], float]:
     """Highest pass between every pair of touching basins: max over their shared edges of the
-    lower of the two cells."""
+    lower of the two cells.
+
+    The pairs of neighbours that differ found once a direction on the flat map (a row's last
+    cell has no right neighbour), then gathered by index: not six boolean selections a
+    direction over the whole map. The same pairs in the same order: 12 m bin at 1 cm (1.44 M
+    cells), 21-23 -> 7-8 ms."""
+    cols = labels.shape[1]
+    flat, height = labels.ravel(), smooth.ravel()
     pairs = []
-    for a, b, ha, hb in (
-        (labels[:, :-1], labels[:, 1:], smooth[:, :-1], smooth[:, 1:]),
-        (labels[:-1, :], labels[1:, :], smooth[:-1, :], smooth[1:, :]),
-    ):
-        differ = a != b  # the few cells on a boundary, then which of them lie between basins
-        la, lb = a[differ], b[differ]
+    for shift in (1, cols):  # right, down
+        differ = flat[:-shift] != flat[shift:]
+        if shift == 1:
+            differ[cols - 1 :: cols] = False  # a row's last cell and the next row's first
+        first = np.flatnonzero(differ)
+        del differ
+        la, lb = flat[first], flat[first + shift]
         touch = (la > 0) & (lb > 0)
-        la, lb = la[touch], lb[touch]
+        first, la, lb = first[touch], la[touch], lb[touch]
         low, high = np.minimum(la, lb), np.maximum(la, lb)
-        pairs.append(np.column_stack([low, high, np.minimum(ha[differ][touch], hb[differ][touch])]))
+        pairs.append(np.column_stack([low, high, np.minimum(height[first], height[first + shift])]))
     edges = np.concatenate(pairs)
     if len(edges) == 0:
         return {}
@@ -130,9 +154,20 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
     return {(int(k // n), int(k % n)): float(v) for k, v in zip(unique, best, strict=True)}
 
 
-def _highest(values: np.ndarray, labels: np.ndarray, count: int) -> np.ndarray:
+def _runs(labels: np.ndarray) -> np.ndarray:
+    """Where each run of equal labels starts in the map's row-major order."""
+    flat = labels.ravel()
+    starts = np.empty(len(flat), dtype=bool)
+    starts[0] = True
+    np.not_equal(flat[1:], flat[:-1], out=starts[1:])
+    return np.flatnonzero(starts)
+
+
+def _highest(
+    values: np.ndarray, labels: np.ndarray, count: int, runs: np.ndarray | None = None
+) -> np.ndarray:
     """Each label's (0..count) highest value, -inf for label 0 and for labels with no cell
-    (`values` finite where labelled).
+    (`values` finite where labelled); `runs` the labels' `_runs` when known.
 
     A basin is a patch of cells, so in row-major order its cells come in runs: the maximum of
     each run (one reduceat over the map), then a scatter-maximum over the runs, not over the
@@ -142,11 +177,7 @@ def _highest(values: np.ndarray, labels: np.ndarray, count: int) -> np.ndarray:
     highest = np.full(count + 1, -np.inf)
     if len(flat) == 0:
         return highest
-    starts = np.empty(len(flat), dtype=bool)
-    starts[0] = True
-    np.not_equal(flat[1:], flat[:-1], out=starts[1:])
-    runs = np.flatnonzero(starts)
-    del starts
+    runs = _runs(labels) if runs is None else runs
     with np.errstate(invalid="ignore"):  # the unlabelled cells' runs may be NaN: dropped next
         np.maximum.at(highest, flat[runs], np.maximum.reduceat(values.ravel(), runs))
     highest[0] = -np.inf
@@ -160,12 +191,25 @@ def _basin_peaks(
     equal highest cells, the first in row-major order). `values` is finite where labels > 0.
 
     A scatter-maximum over the cells and one comparison, not a sort of all the values (what
-    `ndimage.maximum_position` does; docs/development.md, performance notes).
+    `ndimage.maximum_position` does; docs/development.md, performance notes). The comparison
+    over the cells of the runs whose maximum is their basin's peak only (`_highest`'s runs),
+    not over every labelled cell: 12 m bin at 1 cm (1.44 M cells), 13-16 -> 10 ms.
     """
-    peaks = _highest(values, labels, count)
-    flat_labels = labels.ravel()
-    labelled = np.flatnonzero(flat_labels)
-    highest = labelled[values.ravel()[labelled] == peaks[flat_labels[labelled]]]
+    if labels.size == 0:
+        return np.full(count, -np.inf), np.zeros((count, 2), dtype=np.int64)
+    runs = _runs(labels)
+    peaks = _highest(values, labels, count, runs)
+    flat_labels, flat_values = labels.ravel(), values.ravel()
+    ends = np.append(runs[1:], len(flat_labels))
+    run_label = flat_labels[runs]
+    with np.errstate(invalid="ignore"):  # NaN outside the basins: never a peak
+        top = np.maximum.reduceat(flat_values, runs) == peaks[run_label]
+    top &= run_label > 0
+    runs, ends = runs[top], ends[top]
+    length = ends - runs
+    cells = np.arange(int(length.sum())) - np.repeat(np.cumsum(length) - length, length)
+    cells += np.repeat(runs, length)  # ascending: the runs' cells in row-major order
+    highest = cells[flat_values[cells] == peaks[flat_labels[cells]]]
     cell = np.zeros(count + 1, dtype=np.int64)
     cell[flat_labels[highest[::-1]]] = highest[::-1]  # the last assignment wins: the first cell
     return peaks[1:], np.column_stack(np.unravel_index(cell[1:], values.shape))
