@@ -94,6 +94,25 @@ def _segments_cross(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarr
     return (d1 * d2 < 0) & (d3 * d4 < 0)
 
 
+def _meeting_edges(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j), i < j: every pair of the edges start -> end whose bounding boxes meet (closed
+    boxes), found by sweeping the edges sorted by their lowest x: an edge's partners further on
+    in that order are the run whose lowest x is at most its highest x. Only edges whose boxes
+    meet can cross: a bin's 720-gon has 258,000 pairs of edges, of which a few thousand meet;
+    testing every pair's boxes took 8-12 ms a region, the sweep 0.08 ms."""
+    low, high = np.minimum(start, end), np.maximum(start, end)
+    order = np.argsort(low[:, 0], kind="stable")
+    sorted_low = low[order, 0]
+    stop = np.searchsorted(sorted_low, high[order, 0], side="right")
+    counts = np.maximum(stop - np.arange(1, len(order) + 1), 0)
+    p = np.repeat(np.arange(len(order)), counts)
+    q = np.arange(len(p)) - np.repeat(np.cumsum(counts) - counts, counts) + p + 1
+    a, b = order[p], order[q]
+    meet = (low[a, 1] <= high[b, 1]) & (low[b, 1] <= high[a, 1])
+    a, b = a[meet], b[meet]
+    return np.minimum(a, b), np.maximum(a, b)
+
+
 def check_polygon(polygon: np.ndarray) -> str | None:
     """Why `polygon` (V, 2) is not a usable simple region, or None if it is."""
     if polygon.ndim != 2 or polygon.shape[1] != 2:
@@ -104,17 +123,13 @@ def check_polygon(polygon: np.ndarray) -> str | None:
         return "contains NaN or infinity"
     start, end = polygon, np.roll(polygon, -1, axis=0)
     count = len(polygon)
-    i, j = np.triu_indices(count, k=2)
-    keep = ~((i == 0) & (j == count - 1))  # first and last edge share a vertex
-    # only edges whose bounding boxes meet can cross: a bin's 720-gon has 258,000 pairs of
-    # edges, of which a few thousand meet, and the full test of all took 70 ms a region
-    low, high = np.minimum(start, end), np.maximum(start, end)
-    keep &= (low[i, 0] <= high[j, 0]) & (low[j, 0] <= high[i, 0])
-    keep &= (low[i, 1] <= high[j, 1]) & (low[j, 1] <= high[i, 1])
+    i, j = _meeting_edges(start, end)
+    keep = (j - i >= 2) & ~((i == 0) & (j == count - 1))  # neighbours share a vertex
     i, j = i[keep], j[keep]
     crossing = _segments_cross(start[i], end[i], start[j], end[j])
     if np.any(crossing):
-        k = int(np.argmax(crossing))
+        first = np.flatnonzero(crossing)
+        k = first[np.argmin(i[first] * count + j[first])]  # the first pair in (i, j) order
         return f"is self-intersecting (edge {i[k]} crosses edge {j[k]})"
     if abs(polygon_area(polygon)) < 1e-9:
         return "has zero area"
