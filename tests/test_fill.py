@@ -190,6 +190,49 @@ def test_multigrid_fill_matches_a_direct_solve(full_domain) -> None:
     np.testing.assert_allclose(filled, expected, atol=1e-8)
 
 
+def _classified_by_depth(known: np.ndarray, domain: np.ndarray, unknown: np.ndarray):
+    """The deep holes by their definition: each hole's depth from the chessboard distance
+    transform; deep if 24 or more, and 30,000 cells or fewer or no more than 5 x depth**2."""
+    from scipy import ndimage
+
+    distance = ndimage.distance_transform_cdt(~(known & domain), metric="chessboard")
+    labels, count = ndimage.label(unknown)
+    deep = np.zeros(unknown.shape, dtype=bool)
+    for hole in range(1, count + 1):
+        cells = labels == hole
+        depth = int(distance[cells].max())
+        size = int(cells.sum())
+        if depth >= 24 and (size <= 30_000 or size <= 5 * depth**2):
+            deep |= cells
+    return deep
+
+
+@pytest.mark.parametrize(
+    "shape, hole, expect_deep",
+    [
+        ((90, 97), (slice(10, 70), slice(12, 72)), True),  # small and deep
+        ((60, 60), (slice(5, 50), slice(5, 50)), False),  # 23 cells deep: not deep
+        ((60, 60), (slice(5, 52), slice(5, 52)), True),  # 24 cells deep
+        ((420, 420), (slice(10, 410), slice(10, 30)), False),  # 8,000 cells, 10 deep
+        ((420, 420), (slice(10, 410), slice(10, 410)), True),  # 160,000 cells: compact
+        ((30, 1300), (slice(0, 30), slice(20, 1280)), True),  # 37,800, deep to the grid edge
+        ((110, 1300), (slice(0, 100), slice(20, 1280)), False),  # 126,000, 50 deep: spread
+    ],
+)
+def test_deep_holes_are_those_of_their_definition(shape, hole, expect_deep) -> None:
+    rng = np.random.default_rng(3)
+    known = rng.random(shape) < 0.6
+    rows, cols = hole
+    ring = (slice(max(rows.start - 1, 0), rows.stop + 1), slice(cols.start - 1, cols.stop + 1))
+    known[ring] = True  # the hole's depth is set by its own size
+    known[hole] = False
+    for domain in (np.ones(shape, dtype=bool), rng.random(shape) < 0.97):
+        unknown = domain & ~known
+        deep, cut_off = _classify_holes(known, domain, unknown)
+        assert np.array_equal(deep, _classified_by_depth(known, domain, unknown) & ~cut_off)
+        assert np.any(deep[hole]) == expect_deep
+
+
 def test_a_large_cut_off_part_gives_nan_and_a_warning_and_the_rest_is_filled() -> None:
     shape = (60, 60)
     known = np.zeros(shape, dtype=bool)

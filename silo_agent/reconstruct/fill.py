@@ -128,20 +128,28 @@ class LaplaceSystem:
         """The system's sparse matrix (rows and columns numbered as the unknowns), written
         row by row: a row's columns, up, left, itself, right, below, are already ascending.
         Indices in the numbering's int32 (half the int64's traffic); the diagonal is written
-        at its slot of each row, not through a second masked copy of the values."""
+        at its slot of each row, not through a second masked copy of the values. Row lengths
+        are summed over the four neighbour rows and the columns picked by `np.compress`: a sum
+        along the short axis of (n, 5) and 2-D boolean indexing cost 3.1 ms on a bay scan's
+        87,000 unknowns, these 0.9 ms."""
         from scipy.sparse import csr_array
 
         count = len(self.cells)
         up, left, right, down = self.neighbours
+        dtype = self.neighbours.dtype
+        linked_4 = self.neighbours < count
         linked = np.empty((count, 5), dtype=bool)
-        linked[:, [0, 1, 3, 4]] = (self.neighbours < count).T
+        linked[:, [0, 1, 3, 4]] = linked_4.T
         linked[:, 2] = True
-        starts = np.zeros(count + 1, dtype=self.neighbours.dtype)
-        np.cumsum(linked.sum(axis=1), out=starts[1:])
-        itself = np.arange(count, dtype=self.neighbours.dtype)
-        columns = np.stack([up, left, itself, right, down], axis=1)[linked]
+        lengths = linked_4.sum(axis=0, dtype=dtype)
+        lengths += 1
+        starts = np.zeros(count + 1, dtype=dtype)
+        np.cumsum(lengths, out=starts[1:])
+        itself = np.arange(count, dtype=dtype)
+        stacked = np.stack([up, left, itself, right, down], axis=1)
+        columns = np.compress(linked.ravel(), stacked.ravel())
         values = np.full(columns.size, -1.0)
-        values[starts[:-1] + linked[:, 0] + linked[:, 1]] = self.degree  # the diagonal
+        values[starts[:-1] + linked_4[0] + linked_4[1]] = self.degree  # the diagonal
         return csr_array((values, columns, starts), shape=(count, count))
 
     def dense(self) -> np.ndarray:
@@ -236,24 +244,35 @@ def _classify_holes(
     """(deep, cut_off) cells of `unknown`. Holes are 4-connected, as the equations couple
     cells. Deep: a hole with a cell _AMG_MIN_DEPTH or more cells (chessboard distance) from any
     known cell, small or compact (see _AMG_SMALL_HOLE, _AMG_MAX_SPREAD). Cut off: a hole with
-    no known cell of `domain` next to it (its equations are singular)."""
+    no known cell of `domain` next to it (its equations are singular).
+
+    A cell is deep when no anchor lies within _AMG_MIN_DEPTH - 1 cells of it (a maximum
+    filter: 2.5 ms on a bay scan's 0.4 M cells, against 4.3 ms for the chessboard distance
+    transform); the distance itself, a hole's depth, is computed only if a hole with deep
+    cells is too large to be deep by its size alone."""
     from scipy import ndimage
 
     anchors = known & domain
-    distance = ndimage.distance_transform_cdt(~anchors, metric="chessboard")
+    reach = 2 * _AMG_MIN_DEPTH - 1
+    near = ndimage.maximum_filter(anchors, size=reach, mode="constant", cval=False)
     labels, count = ndimage.label(unknown)
     # flags per hole by indexing with the labels of the cells that raise them (O(cells))
     deep_hole = np.zeros(count + 1, dtype=bool)
-    deep_cells = (distance >= _AMG_MIN_DEPTH) & unknown
-    # each hole's depth over its deep cells only; ndimage.maximum argsorts every cell of
-    # the grid (0.4 s on 1.44 M cells, against 0.01 s)
-    depth = np.zeros(count + 1, dtype=distance.dtype)
-    np.maximum.at(depth, labels[deep_cells], distance[deep_cells])
-    candidates = np.flatnonzero(depth)
+    deep_cells = unknown & ~near
+    deep_hole[labels[deep_cells]] = True
+    candidates = np.flatnonzero(deep_hole)
     if candidates.size:
         size = np.bincount(labels.ravel(), minlength=count + 1)[candidates]
-        compact = size <= _AMG_MAX_SPREAD * depth[candidates].astype(np.int64) ** 2
-        deep_hole[candidates] = (size <= _AMG_SMALL_HOLE) | compact
+        small = size <= _AMG_SMALL_HOLE
+        if not np.all(small):
+            distance = ndimage.distance_transform_cdt(~anchors, metric="chessboard")
+            # each hole's depth over its deep cells only; ndimage.maximum argsorts every
+            # cell of the grid (0.4 s on 1.44 M cells, against 0.01 s)
+            depth = np.zeros(count + 1, dtype=distance.dtype)
+            np.maximum.at(depth, labels[deep_cells], distance[deep_cells])
+            compact = size <= _AMG_MAX_SPREAD * depth[candidates].astype(np.int64) ** 2
+            small |= compact
+        deep_hole[candidates] = small
     padded = np.pad(anchors, 1)
     beside = padded[:-2, 1:-1] | padded[2:, 1:-1] | padded[1:-1, :-2] | padded[1:-1, 2:]
     anchored_hole = np.zeros(count + 1, dtype=bool)  # a known 4-neighbour in the domain
