@@ -319,8 +319,8 @@ def membrane_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> 
         return _warm_cg_fill(height, known, domain)  # the path as it was
     shallow = unknown & ~deep & ~cut_off
     out = _warm_cg_fill(height, known, domain & ~deep & ~cut_off)
-    if np.any(deep):
-        out = np.where(deep, _multigrid_fill(height, known, domain & ~shallow & ~cut_off), out)
+    if np.any(deep):  # the deep cells, NaN in `out`, written into it
+        _multigrid_fill(height, known, domain & ~shallow & ~cut_off, out)
     return out
 
 
@@ -346,7 +346,9 @@ def _warm_cg_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> 
     return out
 
 
-def _multigrid_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
+def _multigrid_fill(
+    height: np.ndarray, known: np.ndarray, domain: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
     """The membrane by pyamg's classical (Ruge-Stuben) algebraic multigrid as a conjugate
     gradients preconditioner, to _EXACT_RTOL whatever the size (every hole must touch a known
     cell: the system is then symmetric positive definite).
@@ -358,10 +360,14 @@ def _multigrid_fill(height: np.ndarray, known: np.ndarray, domain: np.ndarray) -
     against 63-72 ms, 13 iterations against 10, the same solution to 2e-9 m. On the same
     holes, not faster: smoothed aggregation (120 ms) or root-node (195 ms) hierarchies,
     SuperLU (90-106 ms), Ruge-Stuben with PMIS splitting (181 ms), a float32 hierarchy,
-    scipy's conjugate gradients around the hierarchy, fewer levels over a dense coarse solve."""
+    scipy's conjugate gradients around the hierarchy, fewer levels over a dense coarse solve.
+
+    The unknown cells' solution is written into `out` if given (the other cells are left as
+    they are), else into a copy of the known heights, NaN elsewhere."""
     import pyamg
 
-    out = np.where(known, height, np.nan)
+    if out is None:
+        out = np.where(known, height, np.nan)
     system = laplace_system(height, domain & ~known, domain)
     hierarchy = pyamg.ruge_stuben_solver(
         system.matrix(),
