@@ -166,9 +166,6 @@ def measured_only(camera: CameraCloud) -> CameraCloud:
     )
 
 
-# ---------------------------------------------------------------- manifest schema
-
-
 def with_extrinsics(
     cameras: Sequence[CameraCloud], poses: Mapping[str, np.ndarray]
 ) -> list[CameraCloud]:
@@ -177,6 +174,9 @@ def with_extrinsics(
         replace(c, extrinsic=np.asarray(poses.get(c.serial, c.extrinsic), dtype=float))
         for c in cameras
     ]
+
+
+# ---------------------------------------------------------------- manifest schema
 
 
 def gravity_of(camera: CameraCloud) -> np.ndarray | None:

@@ -154,20 +154,26 @@ def _saddles(labels: np.ndarray, smooth: np.ndarray) -> dict[tuple[int, int], fl
     return {(int(k // n), int(k % n)): float(v) for k, v in zip(unique, best, strict=True)}
 
 
-def _runs(labels: np.ndarray) -> np.ndarray:
-    """Where each run of equal labels starts in the map's row-major order."""
+def _run_maxima(values: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(where each run of equal labels starts in the map's row-major order, its largest value);
+    `labels` not empty."""
     flat = labels.ravel()
     starts = np.empty(len(flat), dtype=bool)
     starts[0] = True
     np.not_equal(flat[1:], flat[:-1], out=starts[1:])
-    return np.flatnonzero(starts)
+    runs = np.flatnonzero(starts)
+    with np.errstate(invalid="ignore"):  # the unlabelled cells' runs may be NaN
+        return runs, np.maximum.reduceat(values.ravel(), runs)
 
 
 def _highest(
-    values: np.ndarray, labels: np.ndarray, count: int, runs: np.ndarray | None = None
+    values: np.ndarray,
+    labels: np.ndarray,
+    count: int,
+    run_maxima: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Each label's (0..count) highest value, -inf for label 0 and for labels with no cell
-    (`values` finite where labelled); `runs` the labels' `_runs` when known.
+    (`values` finite where labelled); `run_maxima` the labels' `_run_maxima` when known.
 
     A basin is a patch of cells, so in row-major order its cells come in runs: the maximum of
     each run (one reduceat over the map), then a scatter-maximum over the runs, not over the
@@ -177,9 +183,9 @@ def _highest(
     highest = np.full(count + 1, -np.inf)
     if len(flat) == 0:
         return highest
-    runs = _runs(labels) if runs is None else runs
+    runs, maxima = _run_maxima(values, labels) if run_maxima is None else run_maxima
     with np.errstate(invalid="ignore"):  # the unlabelled cells' runs may be NaN: dropped next
-        np.maximum.at(highest, flat[runs], np.maximum.reduceat(values.ravel(), runs))
+        np.maximum.at(highest, flat[runs], maxima)
     highest[0] = -np.inf
     return highest
 
@@ -197,13 +203,13 @@ def _basin_peaks(
     """
     if labels.size == 0:
         return np.full(count, -np.inf), np.zeros((count, 2), dtype=np.int64)
-    runs = _runs(labels)
-    peaks = _highest(values, labels, count, runs)
+    runs, maxima = _run_maxima(values, labels)
+    peaks = _highest(values, labels, count, (runs, maxima))
     flat_labels, flat_values = labels.ravel(), values.ravel()
     ends = np.append(runs[1:], len(flat_labels))
     run_label = flat_labels[runs]
     with np.errstate(invalid="ignore"):  # NaN outside the basins: never a peak
-        top = np.maximum.reduceat(flat_values, runs) == peaks[run_label]
+        top = maxima == peaks[run_label]
     top &= run_label > 0
     runs, ends = runs[top], ends[top]
     length = ends - runs

@@ -94,6 +94,13 @@ def _segments_cross(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarr
     return (d1 * d2 < 0) & (d3 * d4 < 0)
 
 
+def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(run, offset) of every element of runs `counts` long, laid end to end: which run it
+    belongs to and its place in it (0, 1, ...)."""
+    run = np.repeat(np.arange(len(counts)), counts)
+    return run, np.arange(len(run)) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
 def _meeting_edges(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(i, j), i < j: every pair of the edges start -> end whose bounding boxes meet (closed
     boxes), found by sweeping the edges sorted by their lowest x: an edge's partners further on
@@ -105,8 +112,8 @@ def _meeting_edges(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.n
     sorted_low = low[order, 0]
     stop = np.searchsorted(sorted_low, high[order, 0], side="right")
     counts = np.maximum(stop - np.arange(1, len(order) + 1), 0)
-    p = np.repeat(np.arange(len(order)), counts)
-    q = np.arange(len(p)) - np.repeat(np.cumsum(counts) - counts, counts) + p + 1
+    p, offset = _runs(counts)
+    q = offset + p + 1
     a, b = order[p], order[q]
     meet = (low[a, 1] <= high[b, 1]) & (low[b, 1] <= high[a, 1])
     a, b = a[meet], b[meet]
@@ -167,8 +174,8 @@ def _edge_runs(
     first = np.searchsorted(lines_y, np.minimum(y0, y1), side="left")
     last = np.searchsorted(lines_y, np.maximum(y0, y1), side="left")
     counts = last - first
-    edge = np.repeat(np.arange(len(first)), counts)
-    line = np.arange(len(edge)) - np.repeat(np.cumsum(counts) - counts, counts) + first[edge]
+    edge, offset = _runs(counts)
+    line = offset + first[edge]
     return edge, line
 
 
@@ -203,11 +210,9 @@ def _boundary_band(
     start, end = polygon, np.roll(polygon, -1, axis=0)
     lengths = np.linalg.norm(end - start, axis=1)
     counts = np.maximum(2, np.ceil(lengths / (step / 8)).astype(np.int64) + 1)
-    edge = np.repeat(np.arange(len(polygon)), counts)
-    ends = np.cumsum(counts)
-    t = np.arange(ends[-1]) - np.repeat(ends - counts, counts)
-    t = t * (1.0 / (counts - 1))[edge]
-    t[ends - 1] = 1.0
+    edge, offset = _runs(counts)
+    t = offset * (1.0 / (counts - 1))[edge]
+    t[np.cumsum(counts) - 1] = 1.0
     points = start[edge] + t[:, None] * (end - start)[edge]
     col = np.floor((points[:, 0] - origin[0]) / step).astype(np.int64)
     row = np.floor((points[:, 1] - origin[1]) / step).astype(np.int64)
@@ -242,7 +247,7 @@ def _band_fractions(
     per_line = np.bincount(line, minlength=len(line_y))
     # the cuts as a table, one row per line, padded with -inf (never right of a point)
     order = np.argsort(line, kind="stable")
-    slot = np.arange(len(line)) - np.repeat(np.cumsum(per_line) - per_line, per_line)
+    _, slot = _runs(per_line)
     table = np.full((len(line_y), max(1, int(per_line.max()))), -np.inf)
     table[line[order], slot] = x_cut[order]
     centre_x = origin[0] + (cols + 0.5) * step

@@ -422,8 +422,9 @@ def _envelopes(
     side = span / max(1, round(np.sqrt(np.sqrt(float(len(ty)) * len(sy)) / _TILE_PAIRS)))
     tile_r = np.floor((ty - ty.min()) / side).astype(np.intp)
     tile_c = np.floor((tx - tx.min()) / side).astype(np.intp)
-    order = np.argsort(tile_r * (int(tile_c.max()) + 1) + tile_c, kind="stable")
-    key = (tile_r * (int(tile_c.max()) + 1) + tile_c)[order]
+    tile = tile_r * (int(tile_c.max()) + 1) + tile_c
+    order = np.argsort(tile, kind="stable")
+    key = tile[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     ends = np.r_[starts[1:], len(order)]
     by, bx = ty[order], tx[order]
@@ -776,9 +777,10 @@ def _local_envelopes(
     slope: float,
     reach: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The upper `_envelope` of `raised` and the lower of `lowered`, of the sources on
-    themselves, over the sources within `reach` lattice nodes of each only (a source steeper
-    than repose stands so above its near neighbours): the sources are the `where` nodes of a
+    """The upper envelope (as `_envelopes`) of `raised` and the lower of `lowered`, of the
+    sources on themselves, over the sources within `reach` lattice nodes of each only (a
+    source steeper than repose stands so above its near neighbours): the sources are the
+    `where` nodes of a
     lattice, at `position`, in their order. Both over the same pairs, whose distances are
     computed once. Over the sources alone (a neighbour's number read from the padded
     lattice; a NaN stand-in where there is none), not the whole lattice: on the bay batch of

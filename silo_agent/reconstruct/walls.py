@@ -467,27 +467,13 @@ def reseated(cloud: CameraCloud, first: FirstSurface, noise_factor: float) -> Ca
     n = len(cloud.points)
     points = np.empty((n, 3), np.float32)
     at = origin[:, None]
-    # `CameraCloud.points_in_silo`'s float32 products and sums, written straight into rows
-    turn, shift32 = rotation.astype(np.float32), origin.astype(np.float32)
-    rows32 = np.empty((3, min(n, CHUNK_POINTS)), np.float32)
     for start in range(0, n, CHUNK_POINTS):  # point by point: a chunk's temporaries stay in cache
         rows = slice(start, start + CHUNK_POINTS)
         # the coordinates as rows (3, N), not columns: an (N, 3) array's arithmetic with a
         # column or a row broadcast runs numpy's inner loop three values at a time (7-9x the
-        # time of a flat one); the same values, the rays' product with R as before. Each row
-        # computed in place as points_in_silo computes its column, not through an (N, 3)
-        # array and its transpose: the same values
-        x, y, z = cloud.points[rows].T
-        lifted = rows32[:, : len(x)]
-        for axis in range(3):
-            r = turn[axis]
-            row = lifted[axis]
-            np.multiply(x, r[0], out=row)
-            row += y * r[1]
-            row += z * r[2]
-            row += shift32[axis]
-        silo = lifted.astype(np.float64)
-        depth = z.astype(np.float64)
+        # time of a flat one); the same values, the rays' product with R as before
+        silo = cloud.points_in_silo(rows).T.astype(np.float64, order="C")
+        depth = cloud.points[rows, 2].astype(np.float64)
         level, slope_x, slope_y = _surface_at(first, silo[0], silo[1])
         with np.errstate(divide="ignore", invalid="ignore"):  # in place, each value as written
             ray = silo - at
