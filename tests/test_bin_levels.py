@@ -2,19 +2,24 @@
 where the cells round the apex are known only roughly (an 18 m bin's apex seen from 10-13 m)
 the fit is widened while the wider cone agrees; where the flank ends it is not. And the level
 a bin's points are reseated on (reconstruct/walls.py): averaged where a cell holds one noise
-blob (trust.blob_scale), the cell's own mean where it holds several."""
+blob (trust.blob_scale), the cell's own mean where it holds several. And a flat extreme read
+over all the grain at its level, not at the noisiest cell of it."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from silo_agent.base.d455 import CORRELATION_PX
+from silo_agent.config import ReconstructionConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.volume import LEVEL_CONE_RADIUS_M, LEVEL_SCALES_M, _cone_or_mean, _cone_tip
+from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.fuse import CellMoments
 from silo_agent.reconstruct.trust import blob_scale
 from silo_agent.reconstruct.walls import reseat_level
 from silo_agent.scan import CameraCloud
+from silo_agent.sim.scenes import make_scene
+from silo_agent.sim.simulate import simulate
 
 STEP = 0.05
 SLOPE = 0.49  # wheat's angle of repose
@@ -113,3 +118,18 @@ def test_a_shallow_dip_is_no_crater_but_a_crater_at_repose_is() -> None:
             assert abs(level - bottom) < 0.03
         else:
             assert level == averaged
+
+
+def test_an_18m_bins_flat_ring_is_read_over_all_of_it_not_at_its_noisiest_corner() -> None:
+    """An 18 m bin, four eave cameras at 848x480: the lowest grain is the flat ring round the
+    heap (3.5 m, the simulator's exact surface). Located where the 0.4 m surface dips most, a
+    corner between the cameras seen from 15-18 m, and read there on a 1.2 m mean leaning
+    toward the better-seen heap foot, it read +0.064 m; the information-weighted mean of every
+    cell whose level agrees with it reads +0.020 m."""
+    scene = make_scene("bin-18")
+    scan = simulate(scene, ["A1", "A3", "A5", "A7"], seed=0)
+    settings = ReconstructionConfig(grid_step_m=STEP, depth_noise_factor=scene.surface_factor)
+    result = reconstruct(scan, settings)
+    assert result.surface is not None
+    level_min = result.surface.min - result.floor_z
+    assert abs(level_min - scan.extra["truth"]["level_min_m"]) < 0.035
