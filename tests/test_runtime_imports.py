@@ -44,3 +44,31 @@ def test_process_leaves_numpy_developer_modules_unloaded_until_used() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["[]", "numpy.testing._private.utils"]
+
+
+def test_process_path_builds_only_the_config_sections_it_validates() -> None:
+    """The config package imports a section's module when one of its names is first asked
+    for: the scan path (reconstruction, detection, calibration settings) loads no other
+    section's models, and every public name is still there."""
+    code = (
+        "import sys\n"
+        "import silo_agent.service.scan_path, silo_agent.analysis.scan_analysis\n"
+        "print(sorted(m for m in sys.modules if m.startswith('silo_agent.config.')))\n"
+        "import silo_agent.config as config\n"
+        "from silo_agent.config import *\n"
+        "print(all(getattr(config, n) is globals()[n] for n in config.__all__))\n"
+        "print(config.Config.__module__, config.describe_validation_error.__module__)\n"
+        "try:\n"
+        "    config.NoSuchName\n"
+        "except AttributeError as exc:\n"
+        "    print(exc)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [
+        "['silo_agent.config.base', 'silo_agent.config.calibration', "
+        "'silo_agent.config.detection', 'silo_agent.config.reconstruction']",
+        "True",
+        "silo_agent.config.root silo_agent.config.base",
+        "module 'silo_agent.config' has no attribute 'NoSuchName'",
+    ]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from pydantic import (
     AfterValidator,
@@ -10,11 +10,30 @@ from pydantic import (
     ConfigDict,
 )
 
+if TYPE_CHECKING:
+    from pydantic import ValidationError
+
 SAFE_ID = r"^[A-Za-z0-9_-]+$"
 
 
 class ConfigError(Exception):
     """A configuration that cannot be used; the message names file, key and expectation."""
+
+
+def describe_validation_error(exc: ValidationError, source: str) -> str:
+    """One line per problem: `source: key.path: what was expected`."""
+    lines = []
+    for error in exc.errors():
+        path = ".".join(str(p) for p in error["loc"]) or "(top level)"
+        if error["type"] == "config_key":  # a cross-check raised at the top, naming its key
+            path = error["ctx"]["key"]
+        message = error["msg"].removeprefix("Value error, ")
+        if error["type"] == "extra_forbidden":
+            message = "unknown key"
+        elif error["type"] == "missing":
+            message = "required key is missing"
+        lines.append(f"{source}: {path}: {message}")
+    return "\n".join(lines)
 
 
 class Strict(BaseModel):

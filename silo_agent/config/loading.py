@@ -12,25 +12,9 @@ from pydantic import (
     ValidationError,
 )
 
-from silo_agent.config.base import ConfigError
+from silo_agent.config.base import ConfigError, describe_validation_error
 from silo_agent.config.root import Config
 from silo_agent.config.web import token_problem
-
-
-def describe_validation_error(exc: ValidationError, source: str) -> str:
-    """One line per problem: `source: key.path: what was expected`."""
-    lines = []
-    for error in exc.errors():
-        path = ".".join(str(p) for p in error["loc"]) or "(top level)"
-        if error["type"] == "config_key":  # a cross-check raised at the top, naming its key
-            path = error["ctx"]["key"]
-        message = error["msg"].removeprefix("Value error, ")
-        if error["type"] == "extra_forbidden":
-            message = "unknown key"
-        elif error["type"] == "missing":
-            message = "required key is missing"
-        lines.append(f"{source}: {path}: {message}")
-    return "\n".join(lines)
 
 
 def _toml_value(value: object) -> object:

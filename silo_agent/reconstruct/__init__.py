@@ -12,12 +12,12 @@ import functools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage
 
-from silo_agent.config import CalibrationConfig, Config, ReconstructionConfig
+from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.filters import block_sums, dilate_cross
 from silo_agent.grid.geometry import points_outside
@@ -56,6 +56,9 @@ from silo_agent.reconstruct.walls import (
     with_points,
 )
 from silo_agent.scan import CameraCloud, Scan, Site
+
+if TYPE_CHECKING:  # the whole config's models: only `site_from_config` reads one
+    from silo_agent.config import Config
 
 __all__ = ["Reconstruction", "reconstruct", "site_from_config"]
 

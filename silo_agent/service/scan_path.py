@@ -24,7 +24,6 @@ from pydantic import BaseModel, ValidationError
 
 from silo_agent.config import (
     CalibrationConfig,
-    Config,
     ConfigError,
     DetectionConfig,
     ReconstructionConfig,
@@ -36,6 +35,7 @@ if TYPE_CHECKING:
     from silo_agent.analysis.scan_analysis import ScanAnalysis
     from silo_agent.analysis.summary import FailedCamera, ScanSummary
     from silo_agent.capture import CameraFailure
+    from silo_agent.config import Config
     from silo_agent.detect import Pile
     from silo_agent.scan import CameraCloud
     from silo_agent.storage.audit import AuditCache
