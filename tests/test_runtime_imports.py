@@ -105,3 +105,40 @@ def test_process_path_builds_only_the_config_sections_it_validates() -> None:
         "silo_agent.config.root silo_agent.config.base",
         "module 'silo_agent.config' has no attribute 'NoSuchName'",
     ]
+
+
+_PLUGINS = (
+    "import os, sys\n"
+    "os.environ.pop('PYDANTIC_DISABLE_PLUGINS', None)\n"
+    "if sys.argv[1] != 'on':\n"
+    "    os.environ['PYDANTIC_DISABLE_PLUGINS'] = sys.argv[1]\n"
+    "from silo_agent.cli.common import pydantic_plugins_unlooked\n"
+    "pydantic_plugins_unlooked()\n"
+    "from pydantic import BaseModel\n"
+    "class Model(BaseModel):\n"
+    "    x: int\n"
+    "print(Model.model_validate({'x': 2}).x, 'importlib.metadata' in sys.modules)\n"
+    "from pydantic.plugin._loader import get_plugins\n"
+    "print(list(get_plugins()))\n"
+    "from pydantic.plugin import _loader\n"
+    "print(_loader.PYDANTIC_ENTRY_POINT_GROUP, 'importlib.metadata' in sys.modules)\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("plugins", "metadata_at_first_model"), [("__all__", False), ("1", False), ("on", True)]
+)
+def test_pydantic_plugins_off_load_no_package_metadata(plugins, metadata_at_first_model) -> None:
+    """With pydantic's plugins off (`process` turns them off), its plugin loader stays a
+    stand-in and importlib.metadata (the email package with it) is not imported: models
+    validate and no plugin is found. Anything else read of the loader gets the real one; with
+    plugins on, the real loader runs from the first model."""
+    done = subprocess.run(
+        [sys.executable, "-c", _PLUGINS, plugins], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [
+        f"2 {metadata_at_first_model}",
+        "[]",
+        "pydantic True",
+    ]
