@@ -242,9 +242,12 @@ def _clusters(
     # bins i-1 and i are adjacent heights of one cell (consecutive keys: same cell, next bin)
     adjacent = b_key[1:] - b_key[:-1] == 1
     adjacent[cell_of_bins[1:] - 1] = False
+    # each bin's count and its adjacent neighbours': the counts times the 0/1 adjacency added,
+    # integers, so the very sums of a masked add (np.add's where=, whose masked loop was 5x
+    # slower: the 12 m silo's 2.2 M bins at 1 cm, one core under load, 22-28 -> 4.5 ms)
     density = b_n.copy()
-    np.add(density[1:], b_n[:-1], out=density[1:], where=adjacent)
-    np.add(density[:-1], b_n[1:], out=density[:-1], where=adjacent)
+    density[1:] += b_n[:-1] * adjacent
+    density[:-1] += b_n[1:] * adjacent
     del adjacent, b_n
     bins_per_cell = np.diff(np.append(cell_of_bins, len(b_key)))
     peak = np.repeat(np.maximum.reduceat(density, cell_of_bins), bins_per_cell)
