@@ -46,39 +46,6 @@ def test_process_leaves_numpy_developer_modules_unloaded_until_used() -> None:
     assert done.stdout.split() == ["[]", "numpy.testing._private.utils"]
 
 
-_SCIPY_DOCS = (
-    "import sys\n"
-    "from silo_agent.cli.common import scipy_docs_unparsed\n"
-    "if sys.argv[1] == 'unparsed':\n"
-    "    scipy_docs_unparsed()\n"
-    "import numpy as np\n"
-    "from scipy import ndimage\n"
-    "doc = ndimage.uniform_filter1d.__doc__ or ''\n"
-    "print('Array API Standard Support' in doc, 'Calculate a 1-D uniform filter' in doc)\n"
-    "print(ndimage.uniform_filter1d(np.arange(10.0), 3, mode='constant').tolist())\n"
-)
-
-
-def test_process_leaves_scipy_docstrings_unparsed() -> None:
-    """`process` has scipy skip the docstring parse its array-API decorator makes at import
-    (`scipy_docs_unparsed`): the docstrings stay as written, without the appended table,
-    and the functions compute what they do otherwise."""
-    runs = {
-        how: subprocess.run(
-            [sys.executable, "-c", _SCIPY_DOCS, how], capture_output=True, text=True, timeout=120
-        )
-        for how in ("unparsed", "parsed")
-    }
-    for done in runs.values():
-        assert done.returncode == 0, done.stderr
-    unparsed, parsed = (runs[how].stdout.splitlines() for how in ("unparsed", "parsed"))
-    if parsed[0] == "False True":
-        pytest.skip("this scipy appends no array-API table to its docstrings")
-    assert parsed[0] == "True True"
-    assert unparsed[0] == "False True"
-    assert unparsed[1] == parsed[1]
-
-
 def test_process_path_builds_only_the_config_sections_it_validates() -> None:
     """The config package imports a section's module when one of its names is first asked
     for: the scan path (reconstruction, detection, calibration settings) loads no other
@@ -104,41 +71,4 @@ def test_process_path_builds_only_the_config_sections_it_validates() -> None:
         "True",
         "silo_agent.config.root silo_agent.config.base",
         "module 'silo_agent.config' has no attribute 'NoSuchName'",
-    ]
-
-
-_PLUGINS = (
-    "import os, sys\n"
-    "os.environ.pop('PYDANTIC_DISABLE_PLUGINS', None)\n"
-    "if sys.argv[1] != 'on':\n"
-    "    os.environ['PYDANTIC_DISABLE_PLUGINS'] = sys.argv[1]\n"
-    "from silo_agent.cli.common import pydantic_plugins_unlooked\n"
-    "pydantic_plugins_unlooked()\n"
-    "from pydantic import BaseModel\n"
-    "class Model(BaseModel):\n"
-    "    x: int\n"
-    "print(Model.model_validate({'x': 2}).x, 'importlib.metadata' in sys.modules)\n"
-    "from pydantic.plugin._loader import get_plugins\n"
-    "print(list(get_plugins()))\n"
-    "from pydantic.plugin import _loader\n"
-    "print(_loader.PYDANTIC_ENTRY_POINT_GROUP, 'importlib.metadata' in sys.modules)\n"
-)
-
-
-@pytest.mark.parametrize(
-    ("plugins", "metadata_at_first_model"), [("__all__", False), ("1", False), ("on", True)]
-)
-def test_pydantic_plugins_off_load_no_package_metadata(plugins, metadata_at_first_model) -> None:
-    """With pydantic's plugins off (`process` turns them off), its plugin loader stays a
-    stand-in and importlib.metadata (the email package with it) is not imported: models
-    validate and no plugin is found. Anything else read of the loader gets the real one; with
-    plugins on, the real loader runs from the first model."""
-    done = subprocess.run(
-        [sys.executable, "-c", _PLUGINS, plugins], capture_output=True, text=True, timeout=120
-    )
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.splitlines() == [
-        f"2 {metadata_at_first_model}",
-        "[]",
-        "pydantic True",
     ]

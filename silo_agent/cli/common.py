@@ -4,12 +4,9 @@ and the argument types. Imports nothing heavy: `process --help` loads this."""
 from __future__ import annotations
 
 import argparse
-import importlib
-import os
 import sys
-import types
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from silo_agent.config import Config
@@ -58,72 +55,6 @@ def numpy_unused_lazily() -> None:
         sys.modules[full] = module
         loader.exec_module(module)
         setattr(numpy, name, module)
-
-
-PLUGINS_OFF = ("__all__", "1", "true")  # PYDANTIC_DISABLE_PLUGINS values that turn them all off
-
-
-def _no_plugins() -> tuple[()]:
-    return ()
-
-
-class _PluginLoaderStandIn(types.ModuleType):
-    """pydantic.plugin._loader while pydantic's plugins are off (`pydantic_plugins_unlooked`):
-    its `get_plugins` answers none, as the real one does then; any other use, or plugins
-    turned on, loads the real module in its place and reads from it."""
-
-    def __getattr__(self, name: str) -> Any:
-        if name.startswith("__"):  # the import system's questions (`__path__`): a plain module's
-            raise AttributeError(name)
-        if name == "get_plugins" and os.environ.get("PYDANTIC_DISABLE_PLUGINS") in PLUGINS_OFF:
-            return _no_plugins
-        if sys.modules.get(self.__name__) is self:
-            del sys.modules[self.__name__]
-        return getattr(importlib.import_module(self.__name__), name)
-
-
-def pydantic_plugins_unlooked() -> None:
-    """Spare pydantic's plugin loader while its plugins are off (PYDANTIC_DISABLE_PLUGINS, which
-    `process` sets): the loader imports importlib.metadata at its top (and with it the email
-    package, to parse metadata) when the first model is validated, and then returns no plugins
-    without reading it. A stand-in (`_PluginLoaderStandIn`) takes its place in sys.modules
-    until something needs the real one: importing importlib.metadata after numpy and
-    pydantic, one core under load, 12 fresh processes, 0.021-0.024 s of CPU."""
-    name = "pydantic.plugin._loader"
-    if os.environ.get("PYDANTIC_DISABLE_PLUGINS") in PLUGINS_OFF and name not in sys.modules:
-        sys.modules[name] = _PluginLoaderStandIn(name)
-
-
-class _UnparsedDoc(dict[str, list[str]]):
-    """Stands in for scipy's numpydoc parser where `scipy_docs_unparsed` says: the docstring
-    read back as it was, the note appended to it dropped."""
-
-    def __init__(self, function: object) -> None:
-        super().__init__(Notes=[])
-        self.doc = getattr(function, "__doc__", None) or ""
-
-    def __str__(self) -> str:
-        return "\n" + self.doc  # the decorator drops the first line (a signature) of this
-
-
-def scipy_docs_unparsed() -> None:
-    """Keep scipy from parsing docstrings at import. scipy's `xp_capabilities` decorator
-    (scipy._lib._array_api, scipy 1.15 on) parses the numpydoc docstring of every function it
-    marks, as scipy.ndimage, scipy.special and scipy.sparse.linalg are imported, to append a
-    table of array backends to it: 172 parses, most of those imports' Python time. With its
-    parser (`FunctionDoc` in that module) replaced by `_UnparsedDoc`, the functions are the
-    same and only their docstrings lack the table, which the agent never reads: importing
-    numpy, scipy.ndimage and scipy.sparse.linalg, one core, 10 alternated fresh processes,
-    CPU 0.258-0.408 -> 0.219-0.342 s. Nothing is done where scipy has no such parser (older
-    scipy) or scipy.ndimage is loaded already (too late to matter)."""
-    if "scipy.ndimage" in sys.modules:
-        return
-    try:
-        from scipy._lib import _array_api
-    except ImportError:
-        return
-    if hasattr(_array_api, "FunctionDoc") and hasattr(_array_api, "xp_capabilities"):
-        _array_api.FunctionDoc = _UnparsedDoc  # type: ignore[attr-defined,unused-ignore]
 
 
 def configure_logging(args: argparse.Namespace) -> None:

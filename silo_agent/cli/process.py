@@ -5,20 +5,12 @@ from __future__ import annotations
 
 import argparse
 
-from silo_agent.cli.common import (
-    configure_logging,
-    load_config,
-    numpy_unused_lazily,
-    pydantic_plugins_unlooked,
-    scipy_docs_unparsed,
-)
+from silo_agent.cli.common import configure_logging, load_config, numpy_unused_lazily
 from silo_agent.service import batch
 
 
 def process(args: argparse.Namespace) -> int:
     numpy_unused_lazily()  # before scipy loads, which would load them all
-    scipy_docs_unparsed()  # before scipy.ndimage loads
-    pydantic_plugins_unlooked()  # before the first model is validated
     config = load_config(args.config) if args.config else None
     if config is not None and config.detection.onnx is not None:
         configure_logging(args)  # the ONNX detector logs; nothing else on this path does
