@@ -64,6 +64,16 @@ def test_the_pruned_envelopes_are_those_of_every_pair() -> None:
         np.testing.assert_array_equal(got, expected)
 
 
+def test_no_sources_bound_no_target() -> None:
+    """A hole's far bounds come from every other lattice node's sources; a few sources may
+    have none there, and the envelope over no pairs is no bound (it was a zero-size reduction)."""
+    target = (np.array([1.0, 5.0, 9.0]), np.array([2.0, 4.0, 6.0]))
+    none = (np.empty(0), np.empty(0))
+    upper, lower = _envelopes(target, none, [(np.empty(0), 0.01, True), (np.empty(0), 0.01, False)])
+    np.testing.assert_array_equal(upper, np.full(3, np.inf))
+    np.testing.assert_array_equal(lower, np.full(3, -np.inf))
+
+
 def test_the_local_envelopes_are_those_of_the_sources_within_reach() -> None:
     rng = np.random.default_rng(4)
     where = rng.random((30, 40)) < 0.5

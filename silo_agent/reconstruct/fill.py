@@ -475,8 +475,12 @@ def _pair_envelopes(
     thousand cells, heights to a micrometre: half the float64's time on these many pairs).
     The distances computed once (the repose bounds take a lower and an upper envelope over
     the same pairs; each is 40 % of the pairs' work, the distances the rest), and scaled once
-    a slope. In chunks of targets, which bound the memory (a loop over chunks, not cells)."""
+    a slope. In chunks of targets, which bound the memory (a loop over chunks, not cells).
+    No sources bound nothing: +inf for an upper envelope, -inf for a lower one (a min or max
+    over no pairs; a few sources, none of them on the far bounds' every other node)."""
     slopes = sorted({slope for _, slope, _ in bounds})
+    if len(sy) == 0:
+        return [np.full(len(ty), np.inf if upper else -np.inf) for _, _, upper in bounds]
     outs = [np.empty(len(ty)) for _ in bounds]
     chunk = max(1, _PAIRS_PER_CHUNK // max(1, len(sy)))
     # the chunks' arrays allocated once (a fresh one a chunk is as many page faults)
