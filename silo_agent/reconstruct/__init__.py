@@ -398,7 +398,9 @@ def reconstruct(
     else:
         del clear
         first = rough.heightmap.heights.astype(np.float64)
-        cameras, dropped = wall_free(scan.cameras, crossings, site.bin, first)
+        cameras, dropped = wall_free(
+            scan.cameras, crossings, site.bin, first, settings.depth_noise_factor
+        )
         del crossings
     if release_points:
         released(scan)
@@ -496,7 +498,8 @@ def _refined(
         cloud if stride < 2 else with_points(cloud, np.arange(0, len(cloud.points), stride))
         for cloud in scan.cameras
     ]
-    clouds, _ = wall_free(every, [c.every(stride) for c in crossings], site.bin, first)
+    crossed = [c.every(stride) for c in crossings]
+    clouds, _ = wall_free(every, crossed, site.bin, first, settings.depth_noise_factor)
     surface = FirstSurface.of(grid, first, rough.reseat_level)
     clouds = [reseated(cloud, surface, settings.depth_noise_factor) for cloud in clouds]
     again = _reconstruct(
