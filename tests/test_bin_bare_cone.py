@@ -28,7 +28,10 @@ def test_a_drawn_down_hoppers_bare_cone_counts_no_noise() -> None:
     settings = ReconstructionConfig(grid_step_m=0.05, depth_noise_factor=scene.surface_factor)
     result = reconstruct(scan, settings)
     truth = scan.extra["truth"]["volume_m3"]
-    assert result.volume_m3 == pytest.approx(truth, rel=0.01)  # +0.66 %
+    # one scan's depth noise moves this small volume by about 1.6 pp (SD over antithetic
+    # noise pairs, four cameras): a bound on the whole, not the feature (+1.74 % on this
+    # scan); the cone's cells below are what a counted bare cone would fail
+    assert result.volume_m3 == pytest.approx(truth, rel=0.025)
     hm = result.heightmap
     assert hm is not None
     x, y = hm.cell_centres()
