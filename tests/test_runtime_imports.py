@@ -9,6 +9,13 @@ import sys
 import pytest
 
 
+def _python(code: str) -> str:
+    """What a fresh interpreter running `code` prints (it must succeed)."""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
 @pytest.mark.parametrize(
     "module",
     [
@@ -23,9 +30,8 @@ def test_runtime_module_does_not_load_calibrate(module: str) -> None:
         f"import sys, {module}\n"
         "print(sorted(m for m in sys.modules if m.startswith('silo_agent.calibrate')))"
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "[]", f"{module} loads {done.stdout.strip()}"
+    stdout = _python(code)
+    assert stdout.strip() == "[]", f"{module} loads {stdout.strip()}"
 
 
 def test_process_leaves_numpy_developer_modules_unloaded_until_used() -> None:
@@ -41,9 +47,8 @@ def test_process_leaves_numpy_developer_modules_unloaded_until_used() -> None:
         "numpy.testing.assert_equal(1, 1)\n"
         "print(sys.modules['numpy.testing'].assert_equal.__module__)\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["[]", "numpy.testing._private.utils"]
+    stdout = _python(code)
+    assert stdout.split() == ["[]", "numpy.testing._private.utils"]
 
 
 def test_process_path_builds_only_the_config_sections_it_validates() -> None:
@@ -63,9 +68,8 @@ def test_process_path_builds_only_the_config_sections_it_validates() -> None:
         "except AttributeError as exc:\n"
         "    print(exc)\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.splitlines() == [
+    stdout = _python(code)
+    assert stdout.splitlines() == [
         "['silo_agent.config.base', 'silo_agent.config.calibration', "
         "'silo_agent.config.detection', 'silo_agent.config.reconstruction']",
         "True",
