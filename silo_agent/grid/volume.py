@@ -723,40 +723,70 @@ def _to_wall(
     drawn down to its outlet in the wall, grain blown against the wall stands highest there.
     The band's own cells are not read (from 8-10 m the far wall's grain reads 3-5 cm low
     there), so a cone h = a + b * distance is fitted (weighted by information) to the `cells`
-    within LEVEL_CONE_RADIUS_M of the wall point nearest `at`, its tip on the wall (the
-    lever from 0.3 m out needs a wide disc); if it rises
+    within LEVEL_CONE_RADIUS_M of the wall point nearest `at`, its tip on the wall; if it rises
     away from the wall (a lowest point, `rises`) or falls (a highest) by LEVEL_CONE_SIGMAS of
-    its own noise and LEVEL_CONE_MIN_SLOPE, its tip is the level, if beyond `value`."""
+    its own noise and LEVEL_CONE_MIN_SLOPE, its tip is the level, if beyond `value`.
+
+    The disc is widened (doubling, to LEVEL_CONE_MAX_RADIUS_M) while the wider cone is still
+    one and its tip agrees with every narrower tip, as `_cone_or_mean`'s: half a 1.5 m disc,
+    seen from 8-10 m, knows the tip to 5-10 cm (a side-draw's outlet in a 10 m bin, four eave
+    cameras, read -0.10 to +0.05 m off over seeds 2-9)."""
     reach = float(wall_distance[at])
     if not np.isfinite(reach) or reach > LEVEL_WALL_BAND_M + 2 * grid.step:
         return value
-    rows, cols, (row, col) = _window(grid, at, LEVEL_CONE_RADIUS_M + reach)
+    tip = None
+    lower, upper = -np.inf, np.inf  # every narrower tip's band, intersected
+    radius = LEVEL_CONE_RADIUS_M
+    while radius <= LEVEL_CONE_MAX_RADIUS_M:
+        fitted = _wall_tip(grid, heights, cells, information, at, radius, rises, wall_distance)
+        if fitted is None or not lower <= fitted[0] <= upper:
+            break
+        tip = fitted[0]
+        lower = max(lower, tip - LEVEL_AGREE_SIGMAS * fitted[1])
+        upper = min(upper, tip + LEVEL_AGREE_SIGMAS * fitted[1])
+        radius *= 2
+    if tip is None:
+        return value
+    return min(value, tip) if rises else max(value, tip)
+
+
+def _wall_tip(
+    grid: Grid,
+    heights: np.ndarray,
+    cells: np.ndarray,
+    information: np.ndarray,
+    at: tuple[int, int],
+    radius_m: float,
+    rises: bool,
+    wall_distance: np.ndarray,
+) -> tuple[float, float] | None:
+    """The tip on the wall of the cone fitted to the `cells` within `radius_m` of the wall
+    point nearest `at`, and its sigma, if it is a cone (`_to_wall`'s test); else None."""
+    reach = float(wall_distance[at])
+    rows, cols, (row, col) = _window(grid, at, radius_m + reach)
     local = wall_distance[rows, cols]
     if min(local.shape) < 2:
-        return value
+        return None
     inward_y, inward_x = (float(g[row, col]) for g in np.gradient(local, grid.step))
     norm = float(np.hypot(inward_x, inward_y))
     if not norm > 0:
-        return value
+        return None
     xs, ys = _centres(grid, rows, cols)
     heights, cells, information = heights[rows, cols], cells[rows, cols], information[rows, cols]
     foot_x = xs[row, col] - inward_x / norm * reach
     foot_y = ys[row, col] - inward_y / norm * reach
     distance = np.hypot(xs - foot_x, ys - foot_y)
-    near = cells & (distance <= LEVEL_CONE_RADIUS_M) & (information > 0)
+    near = cells & (distance <= radius_m) & (information > 0)
     if near.sum() < 3:
-        return value
+        return None
     weight = information[near] * grid.cell_area
     design = np.column_stack([np.ones(int(near.sum())), distance[near]])
     fit = _cone_fit(design, weight, heights[near])
     if fit is None:
-        return value
-    (tip, slope), clear, _ = fit
-    if rises and slope > clear:
-        return min(value, float(tip))
-    if not rises and slope < -clear:
-        return max(value, float(tip))
-    return value
+        return None
+    (tip, slope), clear, tip_sigma = fit
+    cone = slope > clear if rises else slope < -clear
+    return (float(tip), tip_sigma) if cone else None
 
 
 def _window(
