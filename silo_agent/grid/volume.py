@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -431,21 +432,32 @@ def _cone_or_mean(
     (an 18 m bin's apex seen from the eaves) a 1.5 m disc's tip is known to ~6 cm, a 6 m
     disc's to ~2 cm; where the flank stops being a cone the wider tip departs and the rule
     stops."""
+    tip = _widened_tip(
+        lambda radius: _cone_tip(grid, heights, cells, information, at, radius, rises)
+    )
+    if tip is None:
+        return mean
+    beyond = tip <= mean if rises else tip >= mean
+    return float(tip) if beyond else mean
+
+
+def _widened_tip(tip_at: Callable[[float], tuple[float, float] | None]) -> float | None:
+    """The tip of the widest disc (LEVEL_CONE_RADIUS_M, doubling to LEVEL_CONE_MAX_RADIUS_M)
+    whose fit `tip_at(radius)` (tip and sigma, None if no cone) is still a cone and agrees
+    with every narrower tip within LEVEL_AGREE_SIGMAS of that tip's sigma (Lepski's rule);
+    None if the first disc's is no cone."""
     tip = None
     lower, upper = -np.inf, np.inf  # every narrower tip's band, intersected
     radius = LEVEL_CONE_RADIUS_M
     while radius <= LEVEL_CONE_MAX_RADIUS_M:
-        fitted = _cone_tip(grid, heights, cells, information, at, radius, rises)
+        fitted = tip_at(radius)
         if fitted is None or not lower <= fitted[0] <= upper:
             break
         tip = fitted[0]
         lower = max(lower, tip - LEVEL_AGREE_SIGMAS * fitted[1])
         upper = min(upper, tip + LEVEL_AGREE_SIGMAS * fitted[1])
         radius *= 2
-    if tip is None:
-        return mean
-    beyond = tip <= mean if rises else tip >= mean
-    return float(tip) if beyond else mean
+    return tip
 
 
 def _cone_tip(
@@ -734,17 +746,11 @@ def _to_wall(
     reach = float(wall_distance[at])
     if not np.isfinite(reach) or reach > LEVEL_WALL_BAND_M + 2 * grid.step:
         return value
-    tip = None
-    lower, upper = -np.inf, np.inf  # every narrower tip's band, intersected
-    radius = LEVEL_CONE_RADIUS_M
-    while radius <= LEVEL_CONE_MAX_RADIUS_M:
-        fitted = _wall_tip(grid, heights, cells, information, at, radius, rises, wall_distance)
-        if fitted is None or not lower <= fitted[0] <= upper:
-            break
-        tip = fitted[0]
-        lower = max(lower, tip - LEVEL_AGREE_SIGMAS * fitted[1])
-        upper = min(upper, tip + LEVEL_AGREE_SIGMAS * fitted[1])
-        radius *= 2
+    tip = _widened_tip(
+        lambda radius: _wall_tip(
+            grid, heights, cells, information, at, radius, rises, wall_distance
+        )
+    )
     if tip is None:
         return value
     return min(value, tip) if rises else max(value, tip)
