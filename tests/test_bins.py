@@ -19,6 +19,8 @@ from silo_agent.config import ReconstructionConfig, parse_config
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import Reconstruction, _wall_pass, reconstruct, site_from_config
+from silo_agent.reconstruct.cells import CellTotals, clustered_means, height_segments
+from silo_agent.reconstruct.fuse import CellMoments
 from silo_agent.reconstruct.walls import FirstSurface, WallCrossing, reseated, steadied, wall_free
 from silo_agent.scan import CameraCloud, read_scan, write_scan
 from silo_agent.sim.camera import NoiseModel, d455_intrinsics, pixel_rays, unit_noise
@@ -553,3 +555,27 @@ def test_the_wall_pass_made_again_reads_the_ring_by_the_far_wall() -> None:
     ring = (np.hypot(xs, ys) > 7.5) & (np.hypot(xs, ys) < 8.7)
     error = np.nanmean((rough.heightmap.heights - scene.height(xs, ys))[ring])
     assert abs(error) < 0.15
+
+
+def test_a_cells_second_view_is_kept_within_the_noise_its_cameras_give_it() -> None:
+    """Two cameras see one cell 0.5 m apart, as their noise at 8-10 m does: the scan's rule
+    (3 eps, here 0.15 m) keeps only the lower view and the cell reads low; a bin's cell whose
+    points err by 0.15 m RMS keeps both (DOUBLE_SURFACE_SPREADS of it)."""
+    grid = Grid.over(np.array([[0.0, 0.0], [0.1, 0.0], [0.1, 0.1], [0.0, 0.1]]), 0.1)
+    rng = np.random.default_rng(0)
+    low = np.column_stack([rng.uniform(0, 0.1, (50, 2)), rng.normal(1.0, 0.01, 50)])
+    high = np.column_stack([rng.uniform(0, 0.1, (50, 2)), rng.normal(1.5, 0.01, 50)])
+    points = np.vstack([low, high]).astype(np.float32)
+    camera = np.repeat(np.arange(2, dtype=np.uint8), 50)
+    cell = np.zeros(100, dtype=np.int64)
+    moments = CellMoments.of(points, camera, cell, 1, 2)
+    totals = CellTotals.of(moments, 0.05, 1.0)
+
+    def height(spread: np.ndarray | None) -> float:
+        segments = height_segments(points, camera, cell, grid, totals)
+        found = clustered_means(segments, grid, totals, None, 2, True, spread)
+        return float(found.height[0, 0])
+
+    assert height(None) == pytest.approx(1.0, abs=0.01)
+    assert height(np.array([0.15], dtype=np.float32)) == pytest.approx(1.25, abs=0.01)
+    assert height(np.array([0.05], dtype=np.float32)) == pytest.approx(1.0, abs=0.01)

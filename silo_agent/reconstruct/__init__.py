@@ -36,6 +36,7 @@ from silo_agent.grid.volume import (
     surface_levels,
 )
 from silo_agent.reconstruct.cells import (
+    DOUBLE_SURFACE_SPREADS,
     EPS_MAX_M,
     CellTotals,
     clustered_means,
@@ -45,7 +46,7 @@ from silo_agent.reconstruct.cells import (
 from silo_agent.reconstruct.fill import bspline_fill, membrane_fill, repose_fill
 from silo_agent.reconstruct.fuse import CellMoments, FusedCloud, fuse_and_crop
 from silo_agent.reconstruct.residual import PairResidual, median, registration_residuals
-from silo_agent.reconstruct.trust import blob_scale, cell_information
+from silo_agent.reconstruct.trust import blob_scale, cell_information, point_spread
 from silo_agent.reconstruct.walls import (
     FirstSurface,
     WallCrossing,
@@ -276,7 +277,7 @@ def _sub_counts(grid: Grid, points: np.ndarray) -> np.ndarray | None:
 
 
 def _without_spikes(
-    grid: Grid, filled: np.ndarray, observed: np.ndarray, tolerance: float
+    grid: Grid, filled: np.ndarray, observed: np.ndarray, tolerance: float | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Replace cells standing above a morphological opening of the surface by the opening.
 
@@ -595,6 +596,9 @@ def _reconstruct(
         information = cell_information(grid, moments, scan.cameras, settings.depth_noise_factor)
     if site.bin is not None and first_pass:  # how wide its cameras' noise blobs are, for the
         blob = blob_scale(grid, moments, scan.cameras)  # reseat level
+    spread = None
+    if site.bin is not None and all(cloud.intrinsics for cloud in scan.cameras):
+        spread = point_spread(grid, moments, scan.cameras, settings.depth_noise_factor)
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
@@ -609,6 +613,7 @@ def _reconstruct(
         settings.cluster_min_points,
         settings.max_clusters,
         balance_cameras=site.bin is not None,
+        point_spread=spread,
     )
     clock.lap("clustered_means")
     del segments, totals
@@ -663,7 +668,10 @@ def _reconstruct(
         )
     else:
         filled = membrane_fill(cells.height, observed, grid.inside > 0)
-    filled, observed = _without_spikes(grid, filled, observed, cells.double_surface_m)
+    tolerance: float | np.ndarray = cells.double_surface_m
+    if spread is not None:  # a bin's: each cell's noise (cells.py, DOUBLE_SURFACE_SPREADS)
+        tolerance = np.maximum(tolerance, DOUBLE_SURFACE_SPREADS * spread.reshape(grid.shape))
+    filled, observed = _without_spikes(grid, filled, observed, tolerance)
     clock.lap("fill")
     if settings.slope_correction:
         filled = _slope_corrected(grid, filled, cells.centroid_x, cells.centroid_y, observed)

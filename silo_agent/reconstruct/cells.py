@@ -46,6 +46,11 @@ EPS_NOISE_FACTOR = 3.0  # default eps: 3 x the typical spread of one surface in 
 EPS_MIN_M, EPS_MAX_M = 0.01, 0.10
 CORE_DENSITY = 0.2  # a height bin is core at 1/5 of its cell's densest bin (MinPts, relative)
 DOUBLE_SURFACE_FACTOR, DOUBLE_SURFACE_MIN_M = 3.0, 0.10  # how far apart two views may disagree
+# ... in a bin, at least this many times the RMS a point errs by in the cell (trust.py
+# `point_spread`): a cluster of noise reaches from about 2 RMS under its mean to 3 over, and at
+# 8-10 m 3 eps (~0.35 m) cut its high tail, one-sided (a 10 m bin's heap, three cameras, read
+# 0.5-0.7 % low; the spike rule's tolerance, the same bound, likewise)
+DOUBLE_SURFACE_SPREADS = 5.0
 
 
 @dataclass(frozen=True)
@@ -228,7 +233,11 @@ class _Clusters:
 
 
 def _clusters(
-    segments: _Segments, eps_m: float, double_surface: float, n_cams: int, balance_cameras: bool
+    segments: _Segments,
+    eps_m: float,
+    double_surface: float | np.ndarray,
+    n_cams: int,
+    balance_cameras: bool,
 ) -> _Clusters:
     """1-D density clustering (DBSCAN on a height histogram) of every cell at once: a bin is
     core when its 3-bin neighbourhood holds CORE_DENSITY x the cell's densest one; clusters
@@ -269,7 +278,10 @@ def _clusters(
     # a surface is thin: a cluster taller than a double surface is something standing on the
     # grain (a wall seen through depth noise, a post) and only its lowest part is grain
     bottom = core_key[first][cluster_of_core_bin]
-    thin = core_key - bottom <= double_surface / bin_width
+    if isinstance(double_surface, np.ndarray):  # per cell
+        thin = core_key - bottom <= double_surface[core_cell] / bin_width
+    else:
+        thin = core_key - bottom <= double_surface / bin_width
     bin_cluster = np.full(len(b_cell), -1, dtype=np.int32)  # clusters <= points
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
     c_cell = core_cell[first]
@@ -361,10 +373,13 @@ def clustered_means(
     min_points: int | None,
     max_clusters: int,
     balance_cameras: bool = False,
+    point_spread: np.ndarray | None = None,
 ) -> CellHeights:
     """`segments` and `totals` of one cloud (`height_segments`, `CellTotals.of`): heights from
     the one, centroids and eps from the other. `balance_cameras`: a cluster's height is the
-    mean of its cameras' mean heights, not of its points (a bin's: the module docstring)."""
+    mean of its cameras' mean heights, not of its points (a bin's: the module docstring).
+    `point_spread` (per cell, a bin's): the double-surface bound is at least
+    DOUBLE_SURFACE_SPREADS times it."""
     rows, cols = grid.shape
     n_cells = rows * cols
     eps_m = totals.eps_m
@@ -375,7 +390,10 @@ def clustered_means(
 
     per_cell = totals.points
     double_surface = max(DOUBLE_SURFACE_FACTOR * eps_m, DOUBLE_SURFACE_MIN_M)
-    found = _clusters(segments, eps_m, double_surface, totals.n_cams, balance_cameras)
+    threshold: float | np.ndarray = double_surface
+    if point_spread is not None:
+        threshold = np.maximum(np.float32(double_surface), DOUBLE_SURFACE_SPREADS * point_spread)
+    found = _clusters(segments, eps_m, threshold, totals.n_cams, balance_cameras)
     c_n, c_cell, c_z = found.count, found.cell, found.z
     n_clusters = len(c_n)
 
@@ -391,7 +409,7 @@ def clustered_means(
     # a second surface is a misaligned view of the first, not something standing on the
     # grain (a wall, a robot, a spout): it must lie close above the lowest valid cluster
     lowest = np.repeat(np.minimum.reduceat(np.where(valid, c_z, np.inf), cell_start), group_size)
-    valid &= c_z - lowest <= double_surface
+    valid &= c_z - lowest <= (threshold[c_cell] if isinstance(threshold, np.ndarray) else threshold)
 
     # ---- keep the `max_clusters` largest valid clusters of each cell (ties: the lowest); only
     # the few cells with more valid clusters than that need ranking

@@ -25,6 +25,7 @@ from silo_agent.base.d455 import CORRELATED_SHARE, CORRELATION_PX, blob_area_px,
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.volume import LEVEL_GRID_M
 from silo_agent.reconstruct.fuse import CellMoments
+from silo_agent.reconstruct.walls import kept_noise_share, window_px
 from silo_agent.scan import CameraCloud
 
 
@@ -125,6 +126,33 @@ def cell_information(
         # by an intp index: numpy casts an int32 one on both the gather and the scatter
         information[cell.astype(np.intp)] += contribution
     return information.reshape(grid.shape)
+
+
+def point_spread(
+    grid: Grid, moments: CellMoments, cameras: list[CameraCloud], noise_factor: float
+) -> np.ndarray:
+    """Per cell (flat), the RMS vertical error of one steadied point there (float32, 0 where
+    no camera saw it): the D455's depth RMS at the range its cameras see it from, times the
+    ray's vertical share, times the root of the share of it a steadied point keeps
+    (`walls.kept_noise_share` of its image's box), RMS over the cell's points."""
+    squares = np.zeros(moments.n_cells)
+    points = np.zeros(moments.n_cells)
+    for seen in _sightlines(grid, moments, cameras):
+        ax, ay, az = seen.cloud.extrinsic[:3, 2]
+        depth = seen.across_x * ax + seen.across_y * ay - seen.drop * az
+        usable = np.isfinite(seen.drop) & (depth > 0) & (seen.drop > 0)
+        width = int((seen.cloud.intrinsics or {}).get("width", 848))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms_v = depth_rms_m(depth, seen.focal, noise_factor) * seen.drop / depth
+        kept = kept_noise_share(window_px(width))
+        count = np.where(usable, moments.count[seen.pairs], 0.0)
+        squares += np.bincount(
+            seen.cell, count * np.where(usable, kept * rms_v * rms_v, 0.0), moments.n_cells
+        )
+        points += np.bincount(seen.cell, count, moments.n_cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = np.sqrt(squares / points)
+    return np.where(points > 0, spread, 0.0).astype(np.float32)
 
 
 def blob_scale(grid: Grid, moments: CellMoments, cameras: list[CameraCloud]) -> np.ndarray:
