@@ -73,6 +73,7 @@ BIN_EPS_MAX_M = 1.0  # a bin's grain is seen at up to ~10 m, with up to ~0.5 m o
 WALL_PASS_STEP_M = 0.10  # grid of the first pass that finds the grain height at the wall
 WALL_PASS_POINTS_PER_CELL = 64  # ... on about this many points a cell (_thinned)
 WALL_BAND_M = 0.3  # a bin's cells this close to the wall are filled, not measured (_wall_band)
+SAMPLING_GAP_SHARE = 1 / 3  # an empty cell with this share of its block measured (_sampling_gaps)
 
 
 @dataclass
@@ -274,6 +275,16 @@ def _sub_counts(grid: Grid, points: np.ndarray) -> np.ndarray | None:
     col = np.clip(np.floor((points[:, 0] - grid.origin[0]) * inverse).astype(np.int64), 0, cols - 1)
     row = np.clip(np.floor((points[:, 1] - grid.origin[1]) * inverse).astype(np.int64), 0, rows - 1)
     return np.bincount(row * cols + col, minlength=rows * cols).reshape(rows, cols)
+
+
+def _sampling_gaps(grid: Grid, observed: np.ndarray, excluded: np.ndarray) -> np.ndarray:
+    """The empty cells (not `excluded`) with at least SAMPLING_GAP_SHARE of the TRUST_BLOCK_M
+    block round them measured: gaps between the points of a surface the cameras sample more
+    sparsely than the grid's cells (at 1 cm a crater seen from 9-10 m holds a point in half
+    of them), not holes the cameras did not see."""
+    size = max(3, 2 * round(TRUST_BLOCK_M / grid.step / 2) + 1)
+    share = ndimage.uniform_filter(observed.astype(np.float64), size, mode="constant")
+    return ~observed & ~excluded & (grid.inside > 0) & (share >= SAMPLING_GAP_SHARE)
 
 
 def _without_spikes(
@@ -680,8 +691,12 @@ def _reconstruct(
     if bin_cells is not None and site.base == "floor":
         base = bin_cells.bottom  # a hopper's cone counts, a sloped floor too
         # a fill is no surface under the bin's steel (the membrane runs flat into the wall,
-        # where a hopper's cone rises); measured cells keep their noise for `counted_heights`
-        heights = np.where(~observed & (heights < base), base, heights)
+        # where a hopper's cone rises); measured cells keep their noise for `counted_heights`,
+        # and so do the gaps between them, filled from their noise: held at the steel, those of
+        # a thin wedge of grain where a crater meets the cone counted only their high half
+        # (+41 mm on 1.7 m² of hopper-low at 1 cm, +0.8 % on the volume; none at 2 cm)
+        hole = ~observed & ~_sampling_gaps(grid, observed, band)
+        heights = np.where(hole & (heights < base), base, heights)
     else:
         base = base_surface(grid, heights, site.base, site.floor_z)
     scale_m = BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
