@@ -278,13 +278,15 @@ def _sub_counts(grid: Grid, points: np.ndarray) -> np.ndarray | None:
 
 
 def _sampling_gaps(grid: Grid, observed: np.ndarray, excluded: np.ndarray) -> np.ndarray:
-    """The empty cells (not `excluded`) with at least SAMPLING_GAP_SHARE of the TRUST_BLOCK_M
-    block round them measured: gaps between the points of a surface the cameras sample more
-    sparsely than the grid's cells (at 1 cm a crater seen from 9-10 m holds a point in half
-    of them), not holes the cameras did not see."""
+    """The empty cells with at least SAMPLING_GAP_SHARE of the TRUST_BLOCK_M block round them
+    measured and none `excluded` (the wall band, a hopper's bare cone): gaps between the points
+    of a surface the cameras sample more sparsely than the grid's cells (at 1 cm a crater seen
+    from 9-10 m holds a point in half of them), not holes the cameras did not see. By the bare
+    cone an empty cell is its steel's (the fill there runs level with the grain below it)."""
     size = max(3, 2 * round(TRUST_BLOCK_M / grid.step / 2) + 1)
     share = ndimage.uniform_filter(observed.astype(np.float64), size, mode="constant")
-    return ~observed & ~excluded & (grid.inside > 0) & (share >= SAMPLING_GAP_SHARE)
+    beside = ndimage.maximum_filter(excluded, size, mode="constant")  # by the band or bare
+    return ~observed & ~beside & (grid.inside > 0) & (share >= SAMPLING_GAP_SHARE)
 
 
 def _without_spikes(
