@@ -52,7 +52,7 @@ def test_a_crater_in_a_hopper_reads_alike_at_one_and_two_centimetres() -> None:
     no point. The gaps by the cone, on a wedge of grain a few cm thick, were held at the
     steel like a hole's fill, and so counted only their noise's high half: the same scan read
     +0.70 % at 1 cm against -0.12 % at 2 cm. Filled from their noise and kept like measured
-    cells, they read within 0.3 pp of each other (-0.18 / -0.15 %)."""
+    cells, they read within 0.3 pp of each other (-0.06 / -0.15 %)."""
     scene = make_scene("hopper-low")
     scan = simulate(scene, ["A1", "A5"], seed=0)
     truth = scan.extra["truth"]["volume_m3"]
