@@ -278,10 +278,8 @@ def _clusters(
     # a surface is thin: a cluster taller than a double surface is something standing on the
     # grain (a wall seen through depth noise, a post) and only its lowest part is grain
     bottom = core_key[first][cluster_of_core_bin]
-    if isinstance(double_surface, np.ndarray):  # per cell
-        thin = core_key - bottom <= double_surface[core_cell] / bin_width
-    else:
-        thin = core_key - bottom <= double_surface / bin_width
+    bound = double_surface[core_cell] if isinstance(double_surface, np.ndarray) else double_surface
+    thin = core_key - bottom <= bound / bin_width
     bin_cluster = np.full(len(b_cell), -1, dtype=np.int32)  # clusters <= points
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
     c_cell = core_cell[first]

@@ -78,6 +78,14 @@ def _where_not_all(mask: np.ndarray) -> Callable[[np.ndarray, float], np.ndarray
     return lambda values, other: np.where(mask, values, other)
 
 
+def _axis_depth(seen: _Sightlines) -> tuple[np.ndarray, np.ndarray]:
+    """Each of a camera's cells' depth along its optical axis, and whether the cell is usable
+    (in front of the camera, below it)."""
+    ax, ay, az = seen.cloud.extrinsic[:3, 2]
+    depth = seen.across_x * ax + seen.across_y * ay - seen.drop * az
+    return depth, np.isfinite(seen.drop) & (depth > 0) & (seen.drop > 0)
+
+
 def cell_information(
     grid: Grid, moments: CellMoments, cameras: list[CameraCloud], noise_factor: float
 ) -> np.ndarray:
@@ -96,9 +104,7 @@ def cell_information(
     block_cols = -(-grid.shape[1] // factor)
     for seen in _sightlines(grid, moments, cameras):
         pairs, cell, row, col, focal = seen.pairs, seen.cell, seen.row, seen.col, seen.focal
-        ax, ay, az = seen.cloud.extrinsic[:3, 2]
-        depth = seen.across_x * ax + seen.across_y * ay - seen.drop * az
-        usable = np.isfinite(seen.drop) & (depth > 0) & (seen.drop > 0)
+        depth, usable = _axis_depth(seen)
         # where the camera's every cell is usable (a bin's eave camera: all of them), the
         # masks below would copy each array as it is
         masked = _where_not_all(usable)
@@ -138,18 +144,15 @@ def point_spread(
     squares = np.zeros(moments.n_cells)
     points = np.zeros(moments.n_cells)
     for seen in _sightlines(grid, moments, cameras):
-        ax, ay, az = seen.cloud.extrinsic[:3, 2]
-        depth = seen.across_x * ax + seen.across_y * ay - seen.drop * az
-        usable = np.isfinite(seen.drop) & (depth > 0) & (seen.drop > 0)
-        width = int((seen.cloud.intrinsics or {}).get("width", 848))
+        depth, usable = _axis_depth(seen)
         with np.errstate(invalid="ignore", divide="ignore"):
             rms_v = depth_rms_m(depth, seen.focal, noise_factor) * seen.drop / depth
-        kept = kept_noise_share(window_px(width))
+        kept = kept_noise_share(window_px(int((seen.cloud.intrinsics or {})["width"])))
         count = np.where(usable, moments.count[seen.pairs], 0.0)
-        squares += np.bincount(
-            seen.cell, count * np.where(usable, kept * rms_v * rms_v, 0.0), moments.n_cells
-        )
-        points += np.bincount(seen.cell, count, moments.n_cells)
+        # one pair a cell a camera: a fancy-indexed add, as `cell_information`'s
+        cell = seen.cell.astype(np.intp)
+        squares[cell] += count * np.where(usable, kept * rms_v * rms_v, 0.0)
+        points[cell] += count
     with np.errstate(invalid="ignore", divide="ignore"):
         spread = np.sqrt(squares / points)
     return np.where(points > 0, spread, 0.0).astype(np.float32)
