@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from prometheus_client import generate_latest
+from prometheus_client.parser import text_string_to_metric_families
 from scipy import ndimage
 
 import silo_agent.reconstruct.walls as walls
@@ -28,6 +30,7 @@ from silo_agent.sim.scenes import make_scene
 from silo_agent.sim.simulate import SimRig, simulate
 from silo_agent.telemetry.homeassistant import discovery_config
 from silo_agent.telemetry.payloads import Envelope, volume_payload
+from silo_agent.telemetry.prometheus import Metrics
 from silo_agent.telemetry.sparkplug import RESULT_METRICS
 from tests.support.cli import run_cli
 
@@ -579,3 +582,13 @@ def test_a_cells_second_view_is_kept_within_the_noise_its_cameras_give_it() -> N
     assert height(None) == pytest.approx(1.0, abs=0.01)
     assert height(np.array([0.15], dtype=np.float32)) == pytest.approx(1.25, abs=0.01)
     assert height(np.array([0.05], dtype=np.float32)) == pytest.approx(1.0, abs=0.01)
+
+
+def test_prometheus_exposes_the_bins_fill_ratio_and_headspace() -> None:
+    """Read back through prometheus_client's own text parser, as a scraper would."""
+    metrics = Metrics()
+    metrics.record_result(ScanSummary.from_json(SUMMARY))
+    text = generate_latest(metrics.registry).decode()
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    assert families["silo_agent_last_fill_ratio"].samples[0].value == 0.25
+    assert families["silo_agent_last_headspace_meters"].samples[0].value == 5.0
