@@ -575,8 +575,8 @@ def test_a_cells_second_view_is_kept_within_the_noise_its_cameras_give_it() -> N
     totals = CellTotals.of(moments, 0.05, 1.0)
 
     def height(spread: np.ndarray | None) -> float:
-        segments = height_segments(points, camera, cell, grid, totals)
-        found = clustered_means(segments, grid, totals, None, 2, True, spread)
+        segments = height_segments(points, cell, grid, totals)
+        found = clustered_means(segments, grid, totals, None, 2, spread)
         return float(found.height[0, 0])
 
     assert height(None) == pytest.approx(1.0, abs=0.01)

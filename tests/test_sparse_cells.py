@@ -9,8 +9,7 @@ import pytest
 
 from silo_agent.grid.geometry import _boundary_band, cell_fractions, grid_shape, points_in_polygon
 from silo_agent.grid.grid import Grid
-from silo_agent.reconstruct.cells import segment_sums
-from silo_agent.reconstruct.fuse import CameraPairs, CellMoments, FusedCloud
+from silo_agent.reconstruct.fuse import CellMoments, FusedCloud
 from silo_agent.reconstruct.residual import MAX_SLOPE, MAX_SPREAD_M, registration_residuals
 
 
@@ -20,18 +19,6 @@ def _cloud(n_cams: int, n_cells: int, n_points: int, seed: int = 0):
     cell = rng.integers(0, n_cells, n_points)
     points = rng.normal([3.0, -2.0, 1.5], 0.3, (n_points, 3)).astype(np.float32)
     return points, camera, cell
-
-
-@pytest.mark.parametrize("n_cams", [1, 3, 8, 9, 16, 70, 200])
-def test_camera_pairs_number_the_pairs_that_occur_in_group_then_camera_order(n_cams: int) -> None:
-    rng = np.random.default_rng(n_cams)
-    group = rng.integers(0, 500, 20_000)
-    camera = rng.integers(0, n_cams, 20_000).astype(np.uint8)
-    pairs = CameraPairs.of(group, camera, 600, n_cams)
-    expected, inverse = np.unique(group * 256 + camera, return_inverse=True)
-    np.testing.assert_array_equal(pairs.group, expected // 256)
-    np.testing.assert_array_equal(pairs.camera, expected % 256)
-    np.testing.assert_array_equal(pairs.of_element, inverse)
 
 
 @pytest.mark.parametrize("camera_major", [True, False])
@@ -157,21 +144,3 @@ def test_cut_cells_by_scanlines_are_the_even_odd_test_of_every_sample(polygon, c
     sy = origin[1] + (rows[:, None] + 0.5) * step + oy.ravel()[None, :]
     np.testing.assert_array_equal(fraction[band], points_in_polygon(sx, sy, polygon).mean(axis=1))
     assert np.any((fraction[band] > 0) & (fraction[band] < 1)) == cuts
-
-
-@pytest.mark.parametrize("dtype", [np.int32, np.int64])
-def test_segment_sums_are_reduceat(dtype: type[np.signedinteger]) -> None:
-    rng = np.random.default_rng(3)
-    values = rng.integers(0, 1000, 5000).astype(dtype)
-    starts = np.flatnonzero(np.r_[True, rng.random(4999) < 0.4])
-    expected = np.add.reduceat(values, starts)
-    kept = values.copy()
-    got = segment_sums(values, starts)
-    assert got.dtype == np.int64
-    np.testing.assert_array_equal(got, expected)
-    np.testing.assert_array_equal(values, kept)  # read, not overwritten
-    narrow = segment_sums(values, starts, np.int32)
-    assert narrow.dtype == np.int32
-    np.testing.assert_array_equal(narrow, expected)
-    one = segment_sums(values.copy(), np.array([0]))
-    np.testing.assert_array_equal(one, [values.sum()])

@@ -615,7 +615,7 @@ def _reconstruct(
     eps_max = BIN_EPS_MAX_M if site.bin is not None else EPS_MAX_M
     totals = CellTotals.of(moments, settings.cluster_eps_m, eps_max)
     del moments
-    segments = height_segments(points, camera, cell, grid, totals)
+    segments = height_segments(points, cell, grid, totals)
     counts = _PointCounts(raw_count, in_region, len(points))
     sub_counts = _sub_counts(grid, points)
     del points, camera, cell
@@ -625,7 +625,6 @@ def _reconstruct(
         totals,
         settings.cluster_min_points,
         settings.max_clusters,
-        balance_cameras=site.bin is not None,
         point_spread=spread,
     )
     clock.lap("clustered_means")

@@ -1,8 +1,8 @@
 """Clustered means per cell (paper 2.4, Algorithm 1) and voxel down-sampling (paper 2.3.3).
 
-Everything runs on one sorted int64 key per point: (cell, height bin, camera, height within
-the bin). Sorting it puts every cell's points together in height order, so 1-D density
-clustering is a segment reduction with no loop over cells; the key carries all the sorted data.
+Everything runs on one sorted int64 key per point: (cell, height bin, height within the bin).
+Sorting it puts every cell's points together in height order, so 1-D density clustering is a
+segment reduction with no loop over cells; the key carries all the sorted data.
 numpy's SIMD sort orders it in place where the CPU has a fast one (`SIMD_SORT`), its stable
 sort (timsort, which finds the runs a camera's pixel order leaves in the key) elsewhere; the
 results are the same either way.
@@ -19,11 +19,13 @@ cameras' floors disagree by up to 8 mm, and the volume moved with the step (bay-
 views: +4.57 % at 0.1 m, +3.62 % at 5 mm; bench/results/accuracy-steps.md). Counting points
 moved no mean error of the accuracy bench up by more than 0.05 pp and most down.
 
-A bin's cells keep the mean of the cameras' means (`balance_cameras`): its eave cameras see
-the grain from 8-18 m, where depth noise moves a point 0.1-0.5 m along its ray, and each
-camera's points in a cell are shifted along its own rays; counted alike, cameras on opposite
-sides cancel that shift, while counting points lets the nearest, densest camera's shift stand
-(hopper-low, 848x480: 0.46 / 0.88 % with 2 / 8 cameras, 0.90 / 1.41 % counting points).
+A bin's cells counted the cameras alike too until 2026-12, on the argument that cameras on
+opposite sides cancel the shift depth noise gives each camera's points along its own rays at
+8-18 m. Over ten seeds of hopper-low (the bin where it mattered most) that held at no step:
+mean |volume error| 2.01 / 1.28 / 1.39 % with 2 / 3 / 4 cameras at 5 cm against 1.72 / 1.07 /
+1.04 % counting points, and as good or better at 2 and 1 cm, while the volume moved up to 0.92 pp between
+grid steps (0.63 counting points). Counting points, every bin scan of the accuracy bench stays
+within 0.5 pp over 0.1-0.01 m (bench/results/accuracy-steps-bins.md).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from silo_agent.grid.grid import Grid
-from silo_agent.reconstruct.fuse import CameraPairs, CellMoments, run_starts
+from silo_agent.reconstruct.fuse import CellMoments, run_starts
 from silo_agent.reconstruct.residual import median
 
 Z_QUANTUM_M = 1e-4  # height resolution inside the sort key
@@ -123,30 +125,11 @@ def voxel_downsample(
     return (sums / counts[:, None]).astype(np.float32), camera[order][starts]
 
 
-def segment_sums(
-    values: np.ndarray, starts: np.ndarray, dtype: type[np.signedinteger] = np.int64
-) -> np.ndarray:
-    """`np.add.reduceat(values, starts)` for integers and ascending `starts` (the first 0):
-    differences of one running total, in `dtype`, at the runs' ends. Integer sums are exact
-    in any order, so the same values while the total fits `dtype`; 2.4x faster on the 12 m
-    silo's 2.9 M segments in 2.2 M height bins at 1 cm (7.9 against 19.0 ms), where reduceat
-    pays per run."""
-    total = np.cumsum(values, dtype=dtype)
-    last = np.empty(len(starts), np.intp)
-    last[:-1] = starts[1:]
-    last[-1:] = len(values)
-    last -= 1
-    sums = total[last]
-    sums[1:] -= total[last[:-1]]
-    return sums
-
-
 @dataclass(frozen=True)
 class _Segments:
-    """The runs of the sorted key, one per (cell, height bin, camera) holding points."""
+    """The runs of the sorted key, one per (cell, height bin) holding points."""
 
     count: np.ndarray  # points in the segment
-    camera: np.ndarray
     bin: np.ndarray  # (cell, height bin) key, ascending
     z_sum: np.ndarray  # the points' heights above `z0`, summed (metres)
     z0: float
@@ -154,16 +137,9 @@ class _Segments:
     bin_width_m: float
 
 
-def _segments(
-    points: np.ndarray,
-    camera: np.ndarray,
-    cell: np.ndarray,
-    n_cells: int,
-    n_cams: int,
-    eps_m: float,
-) -> _Segments:
-    """One sort: key = (cell, height bin of eps/2, camera, height within the bin), each field as
-    narrow as the data allows; each (cell, bin, camera) is then a run of the sorted key, a
+def _segments(points: np.ndarray, cell: np.ndarray, n_cells: int, eps_m: float) -> _Segments:
+    """One sort: key = (cell, height bin of eps/2, height within the bin), each field as
+    narrow as the data allows; each (cell, bin) is then a run of the sorted key, a
     "segment", and the rest works on segments. The key and its sort die here: a fresh process
     pays for every page it touches, so a stage's scratch arrays go when it ends."""
     z = points[:, 2]
@@ -174,8 +150,7 @@ def _segments(
     del scaled
     bin_bits = max(0, int(np.floor(np.log2(max(eps_m / 2 / Z_QUANTUM_M, 1.0)))))
     height_bits = max(1, (int(z_q.max()) >> bin_bits).bit_length())  # bins above z0
-    cam_bits = max(1, (n_cams - 1).bit_length())
-    sorted_bits = max(1, (n_cells - 1).bit_length()) + height_bits + cam_bits
+    sorted_bits = max(1, (n_cells - 1).bit_length()) + height_bits
     if sorted_bits + bin_bits > 63:
         raise ValueError(
             f"height span {float(z.max()) - z0:.1f} m over {n_cells} cells does not fit the "
@@ -183,9 +158,8 @@ def _segments(
         )
     fine_mask = (1 << bin_bits) - 1
     key = cell.astype(np.int64)
-    key <<= height_bits + cam_bits + bin_bits
-    key |= (z_q >> bin_bits) << (cam_bits + bin_bits)
-    key |= camera.astype(np.int64) << bin_bits
+    key <<= height_bits + bin_bits
+    key |= (z_q >> bin_bits) << bin_bits
     z_q &= fine_mask
     key |= z_q
     del z_q
@@ -196,7 +170,7 @@ def _segments(
     key.sort(kind=None if SIMD_SORT else "stable")
     segment_key = key >> bin_bits
     s_start = run_starts(segment_key)
-    s_key = segment_key[s_start]
+    s_bin = segment_key[s_start]  # (cell, height bin)
     del segment_key
     s_n = np.empty(len(s_start), np.int32)  # the runs' lengths, written as int32 at once
     np.subtract(s_start[1:], s_start[:-1], out=s_n[:-1], casting="unsafe")
@@ -212,15 +186,12 @@ def _segments(
     s_start -= 1
     s_end_total = key[s_start]
     del key, s_start
-    s_cam = (s_key & ((1 << cam_bits) - 1)).astype(np.uint8)
-    s_bin = s_key >> cam_bits  # (cell, height bin)
-    del s_key
     s_quanta = s_n * ((s_bin & ((1 << height_bits) - 1)) << bin_bits)  # whole bins, then fine
     s_quanta += s_end_total
     s_quanta[1:] -= s_end_total[:-1]
     del s_end_total
     s_z_sum = s_quanta * Z_QUANTUM_M
-    return _Segments(s_n, s_cam, s_bin, s_z_sum, z0, height_bits, Z_QUANTUM_M * (1 << bin_bits))
+    return _Segments(s_n, s_bin, s_z_sum, z0, height_bits, Z_QUANTUM_M * (1 << bin_bits))
 
 
 @dataclass(frozen=True)
@@ -236,16 +207,11 @@ def _clusters(
     segments: _Segments,
     eps_m: float,
     double_surface: float | np.ndarray,
-    n_cams: int,
-    balance_cameras: bool,
 ) -> _Clusters:
     """1-D density clustering (DBSCAN on a height histogram) of every cell at once: a bin is
     core when its 3-bin neighbourhood holds CORE_DENSITY x the cell's densest one; clusters
     are runs of core bins in a cell, split by a gap of more than eps."""
-    s_n, s_bin, height_bits = segments.count, segments.bin, segments.height_bits
-    b_start = run_starts(s_bin)
-    b_n = segment_sums(s_n, b_start, np.int32)  # points per bin: a scan's fit (base/limits.py)
-    b_key = s_bin[b_start]
+    b_n, b_key, height_bits = segments.count, segments.bin, segments.height_bits
     b_cell = (b_key >> height_bits).astype(np.int32)  # the grid's cells fit (base/limits.py)
     cell_of_bins = run_starts(b_cell)
     # bins i-1 and i are adjacent heights of one cell (consecutive keys: same cell, next bin)
@@ -257,7 +223,7 @@ def _clusters(
     density = b_n.copy()
     density[1:] += b_n[:-1] * adjacent
     density[:-1] += b_n[1:] * adjacent
-    del adjacent, b_n
+    del adjacent
     bins_per_cell = np.diff(np.append(cell_of_bins, len(b_key)))
     peak = np.repeat(np.maximum.reduceat(density, cell_of_bins), bins_per_cell)
     core = density >= CORE_DENSITY * peak
@@ -283,37 +249,14 @@ def _clusters(
     bin_cluster = np.full(len(b_cell), -1, dtype=np.int32)  # clusters <= points
     bin_cluster[c_bin[thin]] = cluster_of_core_bin[thin]
     c_cell = core_cell[first]
-    # the bins' arrays go before the segments' are made: this is the clustering's peak
+    # the clustering's peak: its scratch arrays go before the sums
     del b_cell, c_bin, thin, bottom, cluster_of_core_bin, first, core_key, core_cell
-    bin_of_segment = np.zeros(len(s_bin), dtype=np.int32)
-    bin_of_segment[b_start[1:]] = 1
-    del b_start
-    np.cumsum(bin_of_segment, out=bin_of_segment)
-    segment_cluster = np.take(bin_cluster, bin_of_segment)  # int32: take casts it fastest
-    del bin_cluster, bin_of_segment
-    member = segment_cluster >= 0  # a mask: most segments are members
-    m_cluster = segment_cluster[member]
-    del segment_cluster
-    c_n = np.bincount(m_cluster, s_n[member], n_clusters)
-
-    if not balance_cameras:
-        # the points' mean height: what a cell of any size means by it (the module docstring)
-        c_z = segments.z0 + np.bincount(m_cluster, segments.z_sum[member], n_clusters) / c_n
-        return _Clusters(c_n, c_cell, c_z)
-    # camera-balanced centroid: mean over cameras of each camera's mean height in the cluster,
-    # over the (cluster, camera) pairs that occur (not a clusters x cameras array)
-    pairs = CameraPairs.of(m_cluster, segments.camera[member], n_clusters, n_cams)
-    del m_cluster
-    size = len(pairs.group)
-    # bincount reads intp: cast once each (and drop what is read) rather than once a call
-    element, pair_cluster = pairs.of_element.astype(np.intp), pairs.group.astype(np.intp)
-    del pairs
-    m_n = s_n[member]  # gathered again, not held through the pairs' numbering (its peak)
-    pair_mean = np.bincount(element, segments.z_sum[member], size) / np.bincount(element, m_n, size)
-    del element, member, m_n
-    c_z = segments.z0 + np.bincount(pair_cluster, pair_mean, n_clusters) / np.bincount(
-        pair_cluster, minlength=n_clusters
-    )
+    member = bin_cluster >= 0  # a mask: most bins are members
+    m_cluster = bin_cluster[member]
+    del bin_cluster
+    c_n = np.bincount(m_cluster, b_n[member], n_clusters)
+    # the points' mean height: what a cell of any size means by it (the module docstring)
+    c_z = segments.z0 + np.bincount(m_cluster, segments.z_sum[member], n_clusters) / c_n
     return _Clusters(c_n, c_cell, c_z)
 
 
@@ -353,15 +296,15 @@ class CellTotals:
 
 
 def height_segments(
-    points: np.ndarray, camera: np.ndarray, cell: np.ndarray, grid: Grid, totals: CellTotals
+    points: np.ndarray, cell: np.ndarray, grid: Grid, totals: CellTotals
 ) -> _Segments | None:
-    """The sorted (cell, height bin, camera) runs of the points that `clustered_means`
+    """The sorted (cell, height bin) runs of the points that `clustered_means`
     clusters (None without points); `totals` are those of (points, camera, cell). All the
     clustering reads of the points: they can go before it runs."""
     if len(points) == 0 or totals.eps_m is None:
         return None
     rows, cols = grid.shape
-    return _segments(points, camera, cell, rows * cols, totals.n_cams, totals.eps_m)
+    return _segments(points, cell, rows * cols, totals.eps_m)
 
 
 def clustered_means(
@@ -370,14 +313,11 @@ def clustered_means(
     totals: CellTotals,
     min_points: int | None,
     max_clusters: int,
-    balance_cameras: bool = False,
     point_spread: np.ndarray | None = None,
 ) -> CellHeights:
     """`segments` and `totals` of one cloud (`height_segments`, `CellTotals.of`): heights from
-    the one, centroids and eps from the other. `balance_cameras`: a cluster's height is the
-    mean of its cameras' mean heights, not of its points (a bin's: the module docstring).
-    `point_spread` (per cell, a bin's): the double-surface bound is at least
-    DOUBLE_SURFACE_SPREADS times it."""
+    the one, centroids and eps from the other. `point_spread` (per cell, a bin's): the
+    double-surface bound is at least DOUBLE_SURFACE_SPREADS times it."""
     rows, cols = grid.shape
     n_cells = rows * cols
     eps_m = totals.eps_m
@@ -391,7 +331,7 @@ def clustered_means(
     threshold: float | np.ndarray = double_surface
     if point_spread is not None:
         threshold = np.maximum(np.float32(double_surface), DOUBLE_SURFACE_SPREADS * point_spread)
-    found = _clusters(segments, eps_m, threshold, totals.n_cams, balance_cameras)
+    found = _clusters(segments, eps_m, threshold)
     c_n, c_cell, c_z = found.count, found.cell, found.z
     n_clusters = len(c_n)
 
