@@ -47,12 +47,13 @@ def test_a_drawn_down_hoppers_bare_cone_counts_no_noise() -> None:
     assert np.mean(hm.observed[grain]) > 0.99  # the grain stays measured
 
 
-def test_a_crater_in_a_hopper_reads_alike_at_one_and_two_centimetres() -> None:
+def test_a_crater_in_a_hopper_reads_alike_from_five_millimetres_to_two_centimetres() -> None:
     """hopper-low seen by two eave cameras from 9-10 m: at 1 cm half the crater's cells hold
-    no point. The gaps by the cone, on a wedge of grain a few cm thick, were held at the
-    steel like a hole's fill, and so counted only their noise's high half: the same scan read
-    +0.70 % at 1 cm against -0.12 % at 2 cm. Filled from their noise and kept like measured
-    cells, they read within 0.3 pp of each other (-0.06 / -0.15 %)."""
+    no point, at 5 mm two in three. The gaps by the cone, on a wedge of grain a few cm thick,
+    were held at the steel like a hole's fill, and so counted only their noise's high half:
+    +0.70 % at 1 cm against -0.12 % at 2 cm; told by a third of their block measured, they
+    kept their noise at 1 cm but not at 5 mm (-0.28 / -0.10 / +2.68 % at 2 / 1 / 0.5 cm). Told
+    by the share of the cells the block's points would fill: -0.28 / -0.15 / -0.57 %."""
     scene = make_scene("hopper-low")
     scan = simulate(scene, ["A1", "A5"], seed=0)
     truth = scan.extra["truth"]["volume_m3"]
@@ -63,7 +64,8 @@ def test_a_crater_in_a_hopper_reads_alike_at_one_and_two_centimetres() -> None:
         assert volume is not None
         return 100 * (volume - truth) / truth
 
-    assert abs(error_pct(0.01) - error_pct(0.02)) < 0.3
+    errors = [error_pct(step) for step in (0.02, 0.01, 0.005)]
+    assert max(errors) - min(errors) < 0.5  # the grid-step spread the accuracy bench asks
 
 
 def test_four_cameras_read_a_hopper_alike_at_five_two_and_one_centimetres() -> None:

@@ -23,9 +23,8 @@ A bin's cells counted the cameras alike too until 2026-12, on the argument that 
 opposite sides cancel the shift depth noise gives each camera's points along its own rays at
 8-18 m. Over ten seeds of hopper-low (the bin where it mattered most) that held at no step:
 mean |volume error| 2.01 / 1.28 / 1.39 % with 2 / 3 / 4 cameras at 5 cm against 1.72 / 1.07 /
-1.04 % counting points, and as good or better at 2 and 1 cm, while the volume moved up to 0.92 pp between
-grid steps (0.63 counting points). Counting points, every bin scan of the accuracy bench stays
-within 0.5 pp over 0.1-0.01 m (bench/results/accuracy-steps-bins.md).
+1.04 % counting points, as good or better at 2 and 1 cm, while the volume moved up to 0.92 pp
+between grid steps (0.63 counting points; bench/results/accuracy-hopper-steps.md).
 """
 
 from __future__ import annotations
