@@ -285,7 +285,7 @@ def _bare_cone(
     observed: np.ndarray,
     bottom: np.ndarray,
     information: np.ndarray,
-    settings: ReconstructionConfig,
+    repose_slope: float,
 ) -> np.ndarray:
     """`walls.bare_bottom` judged on cells at least BARE_STEP_M wide, so a finer grid finds the
     same cut: its uphill lines count cells, and where a fine grid's cells hold a point in one
@@ -295,9 +295,7 @@ def _bare_cone(
     height and their information; the cut is read back onto the measured fine cells."""
     k = int(np.ceil(BARE_STEP_M / grid.step - 1e-9))
     if k <= 1:
-        return bare_bottom(
-            grid, shape, heights, observed, bottom, information, settings.repose_slope
-        )
+        return bare_bottom(grid, shape, heights, observed, bottom, information, repose_slope)
     rows, cols = grid.shape
     count = block_sums(observed.astype(np.float64), k)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -310,7 +308,7 @@ def _bare_cone(
         count > 0,
         shape.bottom(*coarse.centres()),
         block_sums(np.where(observed, information, 0.0), k) / k**2,  # a density: per area
-        settings.repose_slope,
+        repose_slope,
     )
     return np.repeat(np.repeat(coarse_bare, k, axis=0), k, axis=1)[:rows, :cols] & observed
 
@@ -684,7 +682,13 @@ def _reconstruct(
     if bin_cells is not None and information is not None and site.base == "floor":
         # a hopper's bare cone: filled, held up by the steel below (site.base "floor")
         bare = _bare_cone(
-            grid, bin_cells.shape, cells.height, observed, bin_cells.bottom, information, settings
+            grid,
+            bin_cells.shape,
+            cells.height,
+            observed,
+            bin_cells.bottom,
+            information,
+            settings.repose_slope,
         )
         if np.any(observed & ~band & ~bare):  # an empty hopper keeps its measured steel
             band |= bare

@@ -273,7 +273,6 @@ class CellTotals:
     centroid_x: np.ndarray  # float64 mean x of the cell's points, NaN where none
     centroid_y: np.ndarray
     eps_m: float | None  # None: no points (and none asked for)
-    n_cams: int
 
     @classmethod
     def of(cls, moments: CellMoments, eps_m: float | None, eps_max_m: float) -> CellTotals:
@@ -291,14 +290,14 @@ class CellTotals:
         with np.errstate(invalid="ignore", divide="ignore"):
             centroid_x = moments.per_cell(moments.sum_x) / per_cell
             centroid_y = moments.per_cell(moments.sum_y) / per_cell
-        return cls(per_cell, centroid_x, centroid_y, eps_m, moments.n_cams)
+        return cls(per_cell, centroid_x, centroid_y, eps_m)
 
 
 def height_segments(
     points: np.ndarray, cell: np.ndarray, grid: Grid, totals: CellTotals
 ) -> _Segments | None:
     """The sorted (cell, height bin) runs of the points that `clustered_means`
-    clusters (None without points); `totals` are those of (points, camera, cell). All the
+    clusters (None without points); `totals` are those of (points, cell). All the
     clustering reads of the points: they can go before it runs."""
     if len(points) == 0 or totals.eps_m is None:
         return None
