@@ -73,7 +73,6 @@ BIN_EPS_MAX_M = 1.0  # a bin's grain is seen at up to ~10 m, with up to ~0.5 m o
 WALL_PASS_STEP_M = 0.10  # grid of the first pass that finds the grain height at the wall
 WALL_PASS_POINTS_PER_CELL = 64  # ... on about this many points a cell (_thinned)
 WALL_BAND_M = 0.3  # a bin's cells this close to the wall are filled, not measured (_wall_band)
-BARE_STEP_M = 0.02  # a hopper's bare cone is judged on cells at least this wide (_bare_cone)
 SAMPLING_GAP_SHARE = 1 / 3  # ... of the cells its points would fill measured (_sampling_gaps)
 
 
@@ -276,41 +275,6 @@ def _sub_counts(grid: Grid, points: np.ndarray) -> np.ndarray | None:
     col = np.clip(np.floor((points[:, 0] - grid.origin[0]) * inverse).astype(np.int64), 0, cols - 1)
     row = np.clip(np.floor((points[:, 1] - grid.origin[1]) * inverse).astype(np.int64), 0, rows - 1)
     return np.bincount(row * cols + col, minlength=rows * cols).reshape(rows, cols)
-
-
-def _bare_cone(
-    grid: Grid,
-    shape: BinShape,
-    heights: np.ndarray,
-    observed: np.ndarray,
-    bottom: np.ndarray,
-    information: np.ndarray,
-    repose_slope: float,
-) -> np.ndarray:
-    """`walls.bare_bottom` judged on cells at least BARE_STEP_M wide, so a finer grid finds the
-    same cut: its uphill lines count cells, and where a fine grid's cells hold a point in one
-    of three (5 mm, 8-10 m away) the mean of a few measured cells was taken for better known
-    than it is and the bare cone's noise for grain (hopper-low, four cameras, 0.1 deg / 3 mm:
-    +2.26 % at 5 mm against +1.42 % at 1 cm). A coarse cell holds its measured cells' mean
-    height and their information; the cut is read back onto the measured fine cells."""
-    k = int(np.ceil(BARE_STEP_M / grid.step - 1e-9))
-    if k <= 1:
-        return bare_bottom(grid, shape, heights, observed, bottom, information, repose_slope)
-    rows, cols = grid.shape
-    count = block_sums(observed.astype(np.float64), k)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        coarse_heights = block_sums(np.where(observed, heights, 0.0), k) / count
-    coarse = Grid(grid.origin, grid.step * k, count.shape, block_sums(grid.inside, k) / k**2)
-    coarse_bare = bare_bottom(
-        coarse,
-        shape,
-        coarse_heights,
-        count > 0,
-        shape.bottom(*coarse.centres()),
-        block_sums(np.where(observed, information, 0.0), k) / k**2,  # a density: per area
-        repose_slope,
-    )
-    return np.repeat(np.repeat(coarse_bare, k, axis=0), k, axis=1)[:rows, :cols] & observed
 
 
 def _sampling_gaps(
@@ -681,7 +645,7 @@ def _reconstruct(
     band = _wall_band(grid, bin_cells, observed)
     if bin_cells is not None and information is not None and site.base == "floor":
         # a hopper's bare cone: filled, held up by the steel below (site.base "floor")
-        bare = _bare_cone(
+        bare = bare_bottom(
             grid,
             bin_cells.shape,
             cells.height,

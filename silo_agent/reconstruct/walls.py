@@ -23,6 +23,7 @@ from scipy import ndimage
 
 from silo_agent.base.d455 import CORRELATED_SHARE, CORRELATION_PX, depth_rms_m
 from silo_agent.grid.bin_shape import BinShape
+from silo_agent.grid.filters import block_sums
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.smooth import masked_smooth
 from silo_agent.grid.volume import LEVEL_SCALES_M, level_surface
@@ -40,6 +41,7 @@ CHUNK_POINTS = 1 << 16  # per-point work a chunk at a time: its temporaries stay
 BARE_SCALE_M = 0.5  # bare steel is told from grain on the surface smoothed at this scale ...
 BARE_SIGMAS = 4.0  # ... by standing within this many of that mean's noise sigmas of the steel
 BARE_LINES_MEDIAN = 5  # a hopper's cut up the cone: the median of this many neighbouring lines
+BARE_STEP_M = 0.02  # the cone is judged on cells at least this wide (a finer grid's pooled)
 
 
 def smoothed_depth(
@@ -580,10 +582,34 @@ def bare_bottom(
     around it. The wedge's edge, averaged, looks thicker than it is: the cut falls up to a few
     tenths of a metre up the steel, whose cells below it count their noise as before; where
     the cone is barely steeper than the repose, it may fall on the wedge's thin edge, whose
-    cells are then filled from the grain beside them."""
+    cells are then filled from the grain beside them.
+
+    The cone is judged on cells at least BARE_STEP_M wide, so a finer grid finds the same cut:
+    the lines count cells, and where a fine grid's cells hold a point in one of three (5 mm,
+    8-10 m away) the mean of a few measured cells was taken for better known than it is and
+    the bare cone's noise for grain (hopper-low, four cameras, 0.1 deg / 3 mm: +2.26 % at 5 mm
+    against +1.42 % at 1 cm). A wider cell holds its measured cells' mean height and their
+    information; the cut is read back onto the measured fine cells."""
     none = np.zeros(grid.shape, dtype=bool)
     if shape.floor != "hopper" or not shape.hopper_depth_m > 0:
         return none
+    k = int(np.ceil(BARE_STEP_M / grid.step - 1e-9))
+    if k > 1:
+        count = block_sums(observed.astype(np.float64), k)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            wide_heights = block_sums(np.where(observed, heights, 0.0), k) / count
+        wide = Grid(grid.origin, grid.step * k, count.shape, block_sums(grid.inside, k) / k**2)
+        wide_bare = bare_bottom(
+            wide,
+            shape,
+            wide_heights,
+            count > 0,
+            shape.bottom(*wide.centres()),
+            block_sums(np.where(observed, information, 0.0), k) / k**2,  # a density: per area
+            repose_slope,
+        )
+        rows, cols = grid.shape
+        return np.repeat(np.repeat(wide_bare, k, axis=0), k, axis=1)[:rows, :cols] & observed
     x, y = grid.centres()
     candidates = observed & (shape.bottom_slope(x, y) > repose_slope)
     if not np.any(candidates):
