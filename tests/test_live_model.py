@@ -273,7 +273,9 @@ def test_recordings_with_colour_give_it_aligned_only_on_the_maps_the_model_is_du
             "color": True,
             "playback": str(tmp_path / f"{v.serial}.db3"),
             "extrinsic": v.nominal.tolist(),
-            "timeout_s": 2.0,
+            # a bound, not a wait: four depth + colour playbacks opened at once took over 2 s
+            # to give their first frame twice in a full suite on 2 busy cores
+            "timeout_s": 10.0,
             "spatial_filter": False,
         }
         for v in small_rig.views
