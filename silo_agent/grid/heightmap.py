@@ -54,3 +54,39 @@ class HeightMap:
         if not (0 <= row < rows and 0 <= col < cols):
             return float("nan")
         return float(self.heights[row, col])
+
+    def coarsened(self, k: int, inside: np.ndarray) -> HeightMap:
+        """This map on cells k times as wide (same origin), `inside` their fractions in the
+        region: a cell's height is the mean of its finite cells' (weighted by their fraction
+        inside), it is observed where most of its area inside was, and its counted height
+        keeps the volume: step'^2 x sum(counted' x inside') = step^2 x sum(counted x inside)."""
+        from silo_agent.grid.filters import block_sums
+
+        rows, cols = inside.shape
+        known = np.isfinite(self.heights)
+        weight = np.where(known, self.inside, 0.0)
+        total = block_sums(weight, k)[:rows, :cols]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            heights = block_sums(np.where(known, self.heights * weight, 0.0), k)[:rows, :cols]
+            heights = np.where((total > 0) & (inside > 0), heights / total, np.nan)
+            area = block_sums(self.inside.astype(np.float64), k)[:rows, :cols]
+            seen = block_sums(np.where(self.observed, self.inside, 0.0), k)[:rows, :cols]
+            counted = None
+            if self.counted is not None:
+                finite = np.isfinite(self.counted)
+                column = block_sums(np.where(finite, self.counted * self.inside, 0.0), k)
+                any_finite = block_sums(finite.astype(np.float64), k)[:rows, :cols] > 0
+                counted = np.where(
+                    any_finite & (inside > 0), column[:rows, :cols] / (k * k * inside), np.nan
+                )
+        return HeightMap(
+            self.origin,
+            self.step * k,
+            heights.astype(self.heights.dtype),
+            (seen >= 0.5 * area) & (area > 0),
+            inside,
+            floor_z=self.floor_z,
+            base=self.base,
+            counted=counted,
+            captured_at=self.captured_at,
+        )

@@ -9,6 +9,7 @@ correction -> integration over the region (cut cells weighted).
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import ndimage
 
+from silo_agent.base.limits import MAX_GRID_CELLS
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.filters import block_sums, dilate_cross
@@ -74,6 +76,7 @@ WALL_PASS_STEP_M = 0.10  # grid of the first pass that finds the grain height at
 WALL_PASS_POINTS_PER_CELL = 64  # ... on about this many points a cell (_thinned)
 WALL_BAND_M = 0.3  # a bin's cells this close to the wall are filled, not measured (_wall_band)
 SAMPLING_GAP_SHARE = 1 / 3  # ... of the cells its points would fill measured (_sampling_gaps)
+BIN_ANALYSIS_STEP_M = 0.05  # a bin is reconstructed on cells no wider (_analysis_blocks)
 
 
 @dataclass
@@ -402,6 +405,18 @@ def reconstruct(
         The region at this grid step is past the grid's cell limit.
     """
     site = site or scan.site
+    blocks = _analysis_blocks(settings, site)
+    if blocks > 1:
+        fine_step = settings.grid_step_m / blocks
+        fine = reconstruct(
+            scan,
+            settings.model_copy(update={"grid_step_m": fine_step}),
+            site,
+            exclude,
+            calibration,
+            release_points,
+        )
+        return _coarsened(fine, Grid.over(site.region, settings.grid_step_m), blocks)
     raw = sum(len(c.points) for c in scan.cameras)
     if site.bin is None:
         clouds = list(scan.cameras) if release_points else None
@@ -439,6 +454,36 @@ def reconstruct(
     result.timings_s = {"walls": walls_s, **result.timings_s}
     result.points["raw"] = raw
     result.points["wall"] = dropped
+    return result
+
+
+def _analysis_blocks(settings: ReconstructionConfig, site: Site) -> int:
+    """k: a bin asked for a grid coarser than BIN_ANALYSIS_STEP_M is reconstructed on cells k
+    times finer (within the cell limit) and its map given in blocks of k x k (`_coarsened`);
+    1 otherwise.
+
+    A 10 cm cell where a drawn-down hopper's grain meets the steel holds points unevenly
+    across the crease, its mean 2-3 cm under the cell's (hopper-low, two cameras: the cells
+    of grain under 5 cm deep read 26 mm low at 10 cm, 15 mm at 5 cm), and its volume moved with
+    the step: -0.46 % at 10 cm against -0.16 % at 5 cm. On 5 cm cells a 10 cm map is the 5 cm
+    one, in blocks. Cost: a 10 cm map is as dear as a 5 cm one (four times the cells, a small
+    part of a scan's work beside its points')."""
+    step = settings.grid_step_m
+    k = math.ceil(step / BIN_ANALYSIS_STEP_M - 1e-9)
+    if site.bin is None or settings.method != "bicm" or k < 2:
+        return 1
+    rows, cols = Grid.over(site.region, step).shape  # the grid asked for: its limit first
+    return max(1, min(k, math.isqrt(MAX_GRID_CELLS // (rows * cols))))
+
+
+def _coarsened(fine: Reconstruction, grid: Grid, k: int) -> Reconstruction:
+    """`fine`, reconstructed on cells k times finer than `grid`'s, given on `grid`: its map in
+    k x k blocks (`HeightMap.coarsened`: the same volume), its volume, levels and coverage
+    as they are (read on the finer cells)."""
+    parameters = fine.parameters | {"analysis_step_m": fine.grid_step_m}
+    result = replace(fine, grid_step_m=grid.step, parameters=parameters)
+    if fine.heightmap is not None:
+        result.heightmap = fine.heightmap.coarsened(k, grid.inside)
     return result
 
 
