@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from silo_agent.grid.filters import block_sums
+
 
 @dataclass(frozen=True)
 class HeightMap:
@@ -60,8 +62,6 @@ class HeightMap:
         region: a cell's height is the mean of its finite cells' (weighted by their fraction
         inside), it is observed where most of its area inside was, and its counted height
         keeps the volume: step'^2 x sum(counted' x inside') = step^2 x sum(counted x inside)."""
-        from silo_agent.grid.filters import block_sums
-
         rows, cols = inside.shape
         known = np.isfinite(self.heights)
         weight = np.where(known, self.inside, 0.0)
