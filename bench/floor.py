@@ -1,0 +1,227 @@
+"""How near CloudCompare's time the agent's method can come on a big round bin: the least a
+Python process takes for the 2.5D volume alone, and the per-point work the method cannot do
+without, against CloudCompare and `silo-agent process`, same scan, same run.
+
+(a) Whole processes, alternating, median of `--runs`, pinned to one core: CloudCompare's
+    `-VOLUME` on the fused, cropped points (as bench/silos.py gives it); bench/bare_volume.py
+    (read the PLYs, silo frame, crop to the circle, cell means, nearest fill, sum: what
+    CloudCompare computes, in numpy); `python -m silo_agent process`, with its own stage times.
+(b) In one process, median of `--runs`: the per-point stages a wall-rejecting method pays on
+    every point before any grid work (reconstruct/walls.py): each ray's wall crossing with its
+    camera's smoothed depth (`WallCrossing.of_cloud`), and the steadying of each kept point
+    (`steadied`: that smoothing once more, among the kept points).
+The floor is (a)'s bare process plus (b)'s two stages: the agent cannot come under it without
+dropping the wall test or the noise handling that its accuracy is made of.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from benchlib import (
+    Measured,
+    big_bin,
+    big_bin_scan,
+    cloudcompare_command,
+    cloudcompare_report_volume,
+    compile_package,
+    fused_cloud,
+    header,
+    measured,
+    write_report,
+)
+
+from silo_agent.grid.grid import Grid
+from silo_agent.reconstruct import WALL_PASS_STEP_M
+from silo_agent.reconstruct.walls import WallCrossing, steadied
+from silo_agent.scan import Scan, read_scan, write_ply, write_scan
+
+PROCESS = [sys.executable, "-m", "silo_agent", "process"]
+BARE = [sys.executable, str(Path(__file__).with_name("bare_volume.py"))]
+ENV = os.environ | {"QT_QPA_PLATFORM": "offscreen"}
+NOISE_FACTOR = 1.0
+
+
+def _median_of(runs: int, work: Callable[[], object]) -> float:
+    """Median wall time of `runs` calls of `work`."""
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        work()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def per_point_stages(scan_dir: Path, runs: int) -> tuple[float, float]:
+    """(every camera's `WallCrossing.of_cloud`, every camera's `steadied`) in seconds, on the
+    scan as `process` reads it."""
+    scan = read_scan(scan_dir)
+    shape = scan.site.bin
+    if shape is None:
+        raise ValueError(f"{scan_dir}: no bin")
+    grid = Grid.over(scan.site.region, WALL_PASS_STEP_M)
+
+    def crossings() -> None:
+        for cloud in scan.cameras:
+            WallCrossing.of_cloud(cloud, shape, grid, NOISE_FACTOR)
+
+    def steadying() -> None:
+        for cloud in scan.cameras:
+            steadied(cloud, NOISE_FACTOR)
+
+    return _median_of(runs, crossings), _median_of(runs, steadying)
+
+
+@dataclass(frozen=True)
+class SideBySide:
+    """One scan at one step: median wall seconds and the volumes."""
+
+    cc_s: float
+    bare_s: float
+    agent_s: float
+    crossing_s: float  # (b): every camera's WallCrossing.of_cloud
+    steadying_s: float  # (b): every camera's steadied
+    bare_volume: float
+    agent_volume: float
+    stages: dict[str, float]  # the agent's timings_s, its median run
+
+    @property
+    def floor_s(self) -> float:
+        return self.bare_s + self.crossing_s + self.steadying_s
+
+
+def side_by_side(scan: Scan, step: float, runs: int, work: Path) -> SideBySide:
+    scan_dir = write_scan(replace(scan, reconstruction={"grid_step_m": step}), work / "scan")
+    cc_dir = work / "cc"
+    cc_dir.mkdir()
+    ply = cc_dir / "fused.ply"
+    write_ply(ply, fused_cloud(scan, step))
+    cc: list[Measured] = []
+    bare: list[Measured] = []
+    agent: list[Measured] = []
+    for _ in range(runs):
+        cc.append(measured(cloudcompare_command(ply, step, scan.site.floor_z), cc_dir, ENV))
+        cloudcompare_report_volume(cc_dir)
+        bare.append(measured([*BARE, str(scan_dir), f"{step:g}"]))
+        agent.append(measured([*PROCESS, str(scan_dir), "--grid-step", f"{step:g}", "--json"]))
+    middle = sorted(agent, key=lambda r: r.wall_s)[len(agent) // 2]
+    crossing_s, steadying_s = per_point_stages(scan_dir, runs)
+    return SideBySide(
+        statistics.median(r.wall_s for r in cc),
+        statistics.median(r.wall_s for r in bare),
+        statistics.median(r.wall_s for r in agent),
+        crossing_s,
+        steadying_s,
+        json.loads(bare[-1].stdout)["volume_m3"],
+        json.loads(agent[-1].stdout)["volume_m3"],
+        json.loads(middle.stdout)["timings_s"],
+    )
+
+
+def report(runs: int, root: Path, cameras: Sequence[int], steps: Sequence[float]) -> list[str]:
+    scene = big_bin(12.0)
+    truth = scene.volume_m3
+    most = big_bin_scan(scene, max(cameras))
+    rows, stage_rows, verdicts = [], [], []
+    for count in cameras:
+        scan = replace(most, cameras=most.cameras[:: max(cameras) // count])
+        for step in steps:
+            with tempfile.TemporaryDirectory(dir=root) as tmp:
+                r = side_by_side(scan, step, runs, Path(tmp))
+            cc, bare, agent, floor = r.cc_s, r.bare_s, r.agent_s, r.floor_s
+            crossing, steadying = r.crossing_s, r.steadying_s
+            bare_error = 100 * (r.bare_volume - truth) / truth
+            agent_error = 100 * (r.agent_volume - truth) / truth
+            rows.append(
+                f"| {count} | {step * 100:g} cm | {cc:.3f} | {bare:.3f} ({bare / cc:.2f}x) |"
+                f" {crossing:.3f} | {steadying:.3f} | **{floor:.3f} ({floor / cc:.2f}x)** |"
+                f" {agent:.3f} ({agent / cc:.2f}x) | {bare_error:+.2f} % | {agent_error:+.2f} % |"
+            )
+            stages = r.stages
+            stage_rows.append(
+                f"| {count} | {step * 100:g} cm | "
+                + " | ".join(f"{stages.get(k, 0.0):.3f}" for k in STAGES)
+                + f" | {agent - sum(stages.values()):.3f} |"
+            )
+            verdicts.append(
+                f"- {count} cameras, {step * 100:g} cm: CloudCompare {cc:.2f} s; the bare numpy"
+                f" volume alone {bare / cc:.2f}x of it, leaving {cc - bare:.2f} s for the whole"
+                f" method; the two per-point wall stages take {crossing + steadying:.2f} s of"
+                f" that: floor {floor / cc:.2f}x, the agent {agent / cc:.2f}x"
+            )
+    return [
+        "## (a) Whole processes and the per-point floor",
+        "",
+        f"12 m round bin (benchlib.big_bin), full-resolution D455s (1280x720) evenly round the"
+        f" eave, seed 0; median of {runs} alternating runs each, wall seconds on one core. The"
+        " floor: the bare process plus the two per-point stages (measured in one process, on"
+        " the scan as `process` reads it).",
+        "",
+        "| cameras | grid | CloudCompare | bare numpy volume | wall crossings + smoothed depth"
+        " | steadying | floor | `silo-agent process` | bare volume error | agent volume error |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+        *verdicts,
+        f"- true volume {truth:.2f} m³",
+        "",
+        "## (b) The agent's stages (its `timings_s`, the median run)",
+        "",
+        "The rest: start, imports, reading and checking the scan, pile detection, output.",
+        "",
+        "| cameras | grid | " + " | ".join(STAGES) + " | the rest |",
+        "|---|---|" + "---|" * (len(STAGES) + 1),
+        *stage_rows,
+        "",
+    ]
+
+
+STAGES = (
+    "walls",
+    "fuse_crop",
+    "registration_residual",
+    "clustered_means",
+    "fill",
+    "slope_correction",
+    "volume",
+)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
+    p.add_argument("--cameras", default="8,16", help="comma list of camera counts")
+    p.add_argument("--steps", default="0.01,0.02", help="comma list of grid steps (m)")
+    p.add_argument("--out", type=Path, default=Path("bench/results/floor.md"))
+    args = p.parse_args(argv)
+    os.sched_setaffinity(0, {args.cpu})
+    compile_package()
+    cameras = [int(c) for c in args.cameras.split(",")]
+    steps = [float(s) for s in args.steps.split(",")]
+    if any(max(cameras) % c for c in cameras):
+        p.error(f"--cameras: each must divide the largest, not {args.cameras!r}")
+    load_before = os.getloadavg()
+    head = header("The agent against the floor of its method", f"pinned to CPU {args.cpu}")
+    with tempfile.TemporaryDirectory(prefix="silo-floor-") as tmp:
+        lines = report(args.runs, Path(tmp), cameras, steps)
+    write_report(
+        args.out,
+        head,
+        load_before,
+        lines,
+        "wall times are under that load; the ratios come from alternating runs in the same minutes",
+    )
+
+
+if __name__ == "__main__":
+    main()
