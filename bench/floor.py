@@ -4,14 +4,15 @@ without, against CloudCompare and `silo-agent process`, same scan, same run.
 
 (a) Whole processes, alternating, median of `--runs`, pinned to one core: CloudCompare's
     `-VOLUME` on the fused, cropped points (as bench/silos.py gives it); bench/bare_volume.py
-    (read the PLYs, silo frame, crop to the circle, cell means, nearest fill, sum: what
-    CloudCompare computes, in numpy); `python -m silo_agent process`, with its own stage times.
-(b) In one process, median of `--runs`: the per-point stages a wall-rejecting method pays on
-    every point before any grid work (reconstruct/walls.py): each ray's wall crossing with its
-    camera's smoothed depth (`WallCrossing.of_cloud`), and the steadying of each kept point
-    (`steadied`: that smoothing once more, among the kept points).
-The floor is (a)'s bare process plus (b)'s two stages: the agent cannot come under it without
-dropping the wall test or the noise handling that its accuracy is made of.
+    (read the PLYs, silo frame, crop, cell means, nearest fill, sum: what CloudCompare
+    computes, in numpy); `python -m silo_agent process`. And, in one process, the per-point
+    stages a wall-rejecting method pays before any grid work (reconstruct/walls.py): each
+    ray's wall crossing with its camera's smoothed depth (`WallCrossing.of_cloud`, every
+    point), and the wall verdict with the steadying of the points it keeps (`wall_free`: that
+    smoothing once more, among them), judged against the scene's true grain surface in place
+    of a first pass. The floor is the bare process plus those two stages: the agent cannot
+    come under it without dropping the wall test or the noise handling its accuracy is made of.
+(b) The agent's own stage times (`timings_s` of its median run in (a)).
 (c) The bay batch of bench/silos.py (b), 12 scans with a third of the cells unobserved: one
     `process CACHE`, one bare_volume.py over the 12 scans and CloudCompare once per scan,
     alternating; and, in one process, the membrane fill (`reconstruct.fill.membrane_fill`,
@@ -52,8 +53,9 @@ from benchlib import (
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import WALL_PASS_STEP_M
 from silo_agent.reconstruct.fill import membrane_fill
-from silo_agent.reconstruct.walls import WallCrossing, steadied
+from silo_agent.reconstruct.walls import WallCrossing, wall_free
 from silo_agent.scan import Scan, read_scan, write_ply, write_scan
+from silo_agent.sim.scenes import Scene
 from silo_agent.sim.simulate import SimRig
 
 PROCESS = [sys.executable, "-m", "silo_agent", "process"]
@@ -75,24 +77,24 @@ def _median_of(runs: int, work: Callable[[], object]) -> float:
     return statistics.median(times)
 
 
-def per_point_stages(scan_dir: Path, runs: int) -> tuple[float, float]:
-    """(every camera's `WallCrossing.of_cloud`, every camera's `steadied`) in seconds, on the
-    scan as `process` reads it."""
+def per_point_stages(scan_dir: Path, scene: Scene, runs: int) -> tuple[float, float]:
+    """(every camera's `WallCrossing.of_cloud`, `wall_free` of them all) in seconds, median of
+    `runs`, on the scan as `process` reads it; the grain height at the wall is `scene`'s."""
     scan = read_scan(scan_dir)
     shape = scan.site.bin
     if shape is None:
         raise ValueError(f"{scan_dir}: no bin")
     grid = Grid.over(scan.site.region, WALL_PASS_STEP_M)
-
-    def crossings() -> None:
-        for cloud in scan.cameras:
-            WallCrossing.of_cloud(cloud, shape, grid, NOISE_FACTOR)
-
-    def steadying() -> None:
-        for cloud in scan.cameras:
-            steadied(cloud, NOISE_FACTOR)
-
-    return _median_of(runs, crossings), _median_of(runs, steadying)
+    grain = np.where(grid.inside > 0, scene.height(*grid.centres()), np.nan)
+    crossing_s, verdict_s = [], []
+    for _ in range(runs):
+        start = time.perf_counter()
+        crossings = [WallCrossing.of_cloud(c, shape, grid, NOISE_FACTOR)[0] for c in scan.cameras]
+        middle = time.perf_counter()
+        wall_free(scan.cameras, crossings, shape, grain, NOISE_FACTOR)
+        crossing_s.append(middle - start)
+        verdict_s.append(time.perf_counter() - middle)
+    return statistics.median(crossing_s), statistics.median(verdict_s)
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,7 @@ class SideBySide:
     bare_s: float
     agent_s: float
     crossing_s: float  # (b): every camera's WallCrossing.of_cloud
-    steadying_s: float  # (b): every camera's steadied
+    steadying_s: float  # (b): wall_free of every camera's crossings
     bare_volume: float
     agent_volume: float
     stages: dict[str, float]  # the agent's timings_s, its median run
@@ -113,7 +115,7 @@ class SideBySide:
         return self.bare_s + self.crossing_s + self.steadying_s
 
 
-def side_by_side(scan: Scan, step: float, runs: int, work: Path) -> SideBySide:
+def side_by_side(scan: Scan, scene: Scene, step: float, runs: int, work: Path) -> SideBySide:
     scan_dir = write_scan(replace(scan, reconstruction={"grid_step_m": step}), work / "scan")
     cc_dir = work / "cc"
     cc_dir.mkdir()
@@ -128,7 +130,7 @@ def side_by_side(scan: Scan, step: float, runs: int, work: Path) -> SideBySide:
         bare.append(measured([*BARE, f"{step:g}", str(scan_dir)]))
         agent.append(measured([*PROCESS, str(scan_dir), "--grid-step", f"{step:g}", "--json"]))
     middle = sorted(agent, key=lambda r: r.wall_s)[len(agent) // 2]
-    crossing_s, steadying_s = per_point_stages(scan_dir, runs)
+    crossing_s, steadying_s = per_point_stages(scan_dir, scene, runs)
     return SideBySide(
         statistics.median(r.wall_s for r in cc),
         statistics.median(r.wall_s for r in bare),
@@ -150,7 +152,7 @@ def report(runs: int, root: Path, cameras: Sequence[int], steps: Sequence[float]
         scan = replace(most, cameras=most.cameras[:: max(cameras) // count])
         for step in steps:
             with tempfile.TemporaryDirectory(dir=root) as tmp:
-                r = side_by_side(scan, step, runs, Path(tmp))
+                r = side_by_side(scan, scene, step, runs, Path(tmp))
             cc, bare, agent, floor = r.cc_s, r.bare_s, r.agent_s, r.floor_s
             crossing, steadying = r.crossing_s, r.steadying_s
             bare_error = 100 * (r.bare_volume - truth) / truth
@@ -186,7 +188,8 @@ def report(runs: int, root: Path, cameras: Sequence[int], steps: Sequence[float]
         " the scan as `process` reads it).",
         "",
         "| cameras | grid | CloudCompare | bare numpy volume | wall crossings + smoothed depth"
-        " | steadying | floor | `silo-agent process` | bare volume error | agent volume error |",
+        " | wall verdict + steadying | floor | `silo-agent process` | bare volume error |"
+        " agent volume error |",
         "|---|---|---|---|---|---|---|---|---|---|",
         *rows,
         "",
