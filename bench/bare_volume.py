@@ -10,7 +10,9 @@ those under the ceiling and in the region's box, takes each cell's mean height, 
 empty cells from the nearest measured one (scipy's distance transform) and sums over the cells
 inside the region (a bin's circle, or an axis-aligned rectangle). No wall test, no noise
 handling, no trust, no clustering, no membrane: it reads a wall as grain, as CloudCompare does.
-Prints one JSON line a scan: its directory, volume and cells with a point.
+Prints one JSON line a scan: its directory, volume and cells with a point. Its heap is set up
+as `process` sets up its own (silo_agent/base/heap.py: freed blocks reused, no huge-page
+advice), so neither pays page faults the other does not.
 """
 
 from __future__ import annotations
@@ -20,8 +22,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from scipy import ndimage
+from silo_agent.base.heap import keep_freed_memory, small_pages
+
+small_pages()  # before numpy is imported
+keep_freed_memory()
+
+import numpy as np  # noqa: E402
+from scipy import ndimage  # noqa: E402
 
 END_HEADER = b"end_header\n"
 
