@@ -27,7 +27,7 @@ from silo_agent.config import ReconstructionConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import reconstruct
 from silo_agent.reconstruct.fuse import fuse_and_crop
-from silo_agent.scan import Scan, Site, write_ply
+from silo_agent.scan import Scan, Site, write_ply, write_scan
 from silo_agent.sim.grains import grain
 from silo_agent.sim.layouts import EAVE_AIM, EAVE_INSET_M, look_at
 from silo_agent.sim.scenes import Scene, bin_scene, cone_height, numeric_volume
@@ -35,6 +35,8 @@ from silo_agent.sim.simulate import SimRig, plan_view
 
 REPO = Path(__file__).resolve().parent.parent
 CLOUDCOMPARE = "CloudCompare"
+CLOUDCOMPARE_ENV = os.environ | {"QT_QPA_PLATFORM": "offscreen"}  # headless
+PROCESS = [sys.executable, "-m", "silo_agent", "process"]  # the agent's `process`, whole
 T = TypeVar("T")
 
 
@@ -130,7 +132,6 @@ def cloudcompare_volume(
     CloudCompare writes `VolumeCalculationReport_<date>.txt` next to the cloud, named to the
     minute, so the cloud sits alone in a fresh directory and the report is read from there.
     """
-    env = os.environ | {"QT_QPA_PLATFORM": "offscreen"}
     command = [
         CLOUDCOMPARE,
         "-SILENT",
@@ -147,7 +148,9 @@ def cloudcompare_volume(
     for old in ply.parent.glob("VolumeCalculationReport*.txt"):
         old.unlink()
     start = time.perf_counter()
-    subprocess.run(command, env=env, capture_output=True, check=True, timeout=timeout_s)
+    subprocess.run(
+        command, env=CLOUDCOMPARE_ENV, capture_output=True, check=True, timeout=timeout_s
+    )
     wall = time.perf_counter() - start
     reports = list(ply.parent.glob("VolumeCalculationReport*.txt"))
     if len(reports) != 1:
@@ -303,6 +306,25 @@ def cloudcompare_report_volume(directory: Path) -> float:
     return float(found.group(1))
 
 
+def scan_and_cloud(scan: Scan, step: float, work: Path) -> tuple[Path, Path]:
+    """`scan` written to `work / "scan"` for a grid of `step`, and its fused, cropped cloud
+    alone in `work / "cc"` for CloudCompare: (the scan directory, the PLY)."""
+    scan_dir = write_scan(
+        dataclasses.replace(scan, reconstruction={"grid_step_m": step}), work / "scan"
+    )
+    ply = work / "cc" / "fused.ply"
+    ply.parent.mkdir(parents=True)
+    write_ply(ply, fused_cloud(scan, step))
+    return scan_dir, ply
+
+
+def measured_cloudcompare(ply: Path, step: float, floor_z: float) -> tuple[Measured, float]:
+    """CloudCompare's volume of `ply` (alone in its directory) as a measured whole process,
+    and the volume it reports."""
+    run = measured(cloudcompare_command(ply, step, floor_z), ply.parent, CLOUDCOMPARE_ENV)
+    return run, cloudcompare_report_volume(ply.parent)
+
+
 # the round bins of the big-silo benches: diameter -> (eave, grain at the wall, heap radius),
 # in the proportions of the simulator's bin-18. "20 m" is 19.99 m: the region of an exact
 # 20 m bin (a 720-gon of the circle's area) is 20.0001 m across, 2001 x 2001 cells at 1 cm,
@@ -425,6 +447,26 @@ def bay_scan(scene: Scene, seed: int, rig: SimRig) -> Scan:
         reconstruction={"grid_step_m": 0.01},
         extra={"truth": scene.truth()},
     )
+
+
+BAY_SCANS = 12  # the batch of bay scans, a third of each unobserved
+
+
+def write_bay_batch(root: Path, step: float) -> tuple[Scene, list[Path], list[Path]]:
+    """BAY_SCANS scans of `bay_scene` (seeds 0..) written under `root / "bay-cache"`, and each
+    one's fused, cropped cloud for CloudCompare alone in a directory under `root / "bay-cc"`:
+    (the scene, the scan directories, the PLYs)."""
+    scene = bay_scene()
+    rig = SimRig(scene)
+    directories, plys = [], []
+    for seed in range(BAY_SCANS):
+        scan = bay_scan(scene, seed, rig)
+        directories.append(write_scan(scan, root / "bay-cache" / scan.scan_id))
+        ply = root / "bay-cc" / scan.scan_id / "fused.ply"
+        ply.parent.mkdir(parents=True)
+        write_ply(ply, fused_cloud(scan, step))
+        plys.append(ply)
+    return scene, directories, plys
 
 
 def resampled(scan: Scan, total: int, seed: int = 0) -> Scan:

@@ -166,8 +166,8 @@ def measure(name: str, inputs: Inputs, root: Path) -> str:
 def bay_batch(root: Path, old_tree: Path | None) -> list[str]:
     """bench/silos.py section (b) with this tree, then the same batch by `old_tree`'s code and
     by this tree's again, alternating (one `process CACHE` of the 12 scans each)."""
-    from benchlib import measured
-    from silos import ENV, PROCESS, section_bay
+    from benchlib import CLOUDCOMPARE_ENV, PROCESS, measured
+    from silos import section_bay
 
     lines = section_bay(root)
     if old_tree is None:
@@ -177,7 +177,7 @@ def bay_batch(root: Path, old_tree: Path | None) -> list[str]:
     trees = {"old": old_tree.resolve(), "new": Path(__file__).resolve().parent.parent}
     rows = []
     for name, tree in [*trees.items(), *trees.items()]:
-        run = measured(command, None, ENV | {"PYTHONPATH": str(tree)})
+        run = measured(command, None, CLOUDCOMPARE_ENV | {"PYTHONPATH": str(tree)})
         commit = subprocess.run(
             ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
             capture_output=True,

@@ -36,17 +36,17 @@ from pathlib import Path
 import numpy as np
 from bare_volume import cell_means, read_points
 from benchlib import (
+    BAY_SCANS,
+    PROCESS,
     Measured,
-    bay_scan,
-    bay_scene,
     big_bin,
     big_bin_scan,
-    cloudcompare_command,
-    cloudcompare_report_volume,
     compile_package,
-    fused_cloud,
     header,
     measured,
+    measured_cloudcompare,
+    scan_and_cloud,
+    write_bay_batch,
     write_report,
 )
 
@@ -54,15 +54,11 @@ from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import WALL_PASS_STEP_M
 from silo_agent.reconstruct.fill import membrane_fill
 from silo_agent.reconstruct.walls import WallCrossing, wall_free
-from silo_agent.scan import Scan, read_scan, write_ply, write_scan
+from silo_agent.scan import Scan, read_scan
 from silo_agent.sim.scenes import Scene
-from silo_agent.sim.simulate import SimRig
 
-PROCESS = [sys.executable, "-m", "silo_agent", "process"]
 BARE = [sys.executable, str(Path(__file__).with_name("bare_volume.py"))]
-ENV = os.environ | {"QT_QPA_PLATFORM": "offscreen"}
 NOISE_FACTOR = 1.0
-BAY_SCANS = 12
 BAY_STEP_M = 0.01
 BATCH_TARGET = 0.8  # the batch's target, x CloudCompare once per scan
 
@@ -116,17 +112,12 @@ class SideBySide:
 
 
 def side_by_side(scan: Scan, scene: Scene, step: float, runs: int, work: Path) -> SideBySide:
-    scan_dir = write_scan(replace(scan, reconstruction={"grid_step_m": step}), work / "scan")
-    cc_dir = work / "cc"
-    cc_dir.mkdir()
-    ply = cc_dir / "fused.ply"
-    write_ply(ply, fused_cloud(scan, step))
+    scan_dir, ply = scan_and_cloud(scan, step, work)
     cc: list[Measured] = []
     bare: list[Measured] = []
     agent: list[Measured] = []
     for _ in range(runs):
-        cc.append(measured(cloudcompare_command(ply, step, scan.site.floor_z), cc_dir, ENV))
-        cloudcompare_report_volume(cc_dir)
+        cc.append(measured_cloudcompare(ply, step, scan.site.floor_z)[0])
         bare.append(measured([*BARE, f"{step:g}", str(scan_dir)]))
         agent.append(measured([*PROCESS, str(scan_dir), "--grid-step", f"{step:g}", "--json"]))
     middle = sorted(agent, key=lambda r: r.wall_s)[len(agent) // 2]
@@ -223,25 +214,13 @@ def membrane_fill_s(directories: Sequence[Path], runs: int) -> float:
 
 
 def batch(runs: int, root: Path) -> list[str]:
-    scene = bay_scene()
-    rig = SimRig(scene)
+    _, directories, plys = write_bay_batch(root, BAY_STEP_M)
     cache = root / "bay-cache"
-    directories, plys = [], []
-    for seed in range(BAY_SCANS):
-        scan = bay_scan(scene, seed, rig)
-        directories.append(write_scan(scan, cache / scan.scan_id))
-        ply = root / "bay-cc" / scan.scan_id / "fused.ply"
-        ply.parent.mkdir(parents=True)
-        write_ply(ply, fused_cloud(scan, BAY_STEP_M))
-        plys.append(ply)
     agent, bare, cc = [], [], []
     for _ in range(runs):
         agent.append(measured([*PROCESS, str(cache), "--grid-step", f"{BAY_STEP_M:g}", "--json"]))
         bare.append(measured([*BARE, f"{BAY_STEP_M:g}", *map(str, directories)]).wall_s)
-        cc_s = 0.0
-        for ply in plys:
-            cc_s += measured(cloudcompare_command(ply, BAY_STEP_M, 0.0), ply.parent, ENV).wall_s
-            cloudcompare_report_volume(ply.parent)
+        cc_s = sum(measured_cloudcompare(ply, BAY_STEP_M, 0.0)[0].wall_s for ply in plys)
         cc.append(cc_s)
     n = BAY_SCANS
     agent_s = statistics.median(r.wall_s for r in agent) / n

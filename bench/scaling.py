@@ -20,7 +20,6 @@ import json
 import math
 import os
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -29,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from benchlib import (
+    PROCESS,
     Measured,
     bay_scan,
     bay_scene,
@@ -59,7 +59,6 @@ CELLS = (100_000, 250_000, 500_000, 1_000_000, 2_000_000, 4_000_000)
 CAMERAS = (1, 2, 4, 8, 16)
 FIXED_POINTS = 4_000_000
 DIAMETER_M = 12.0
-PROCESS = [sys.executable, "-m", "silo_agent", "process"]
 
 
 @dataclass(frozen=True)

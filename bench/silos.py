@@ -17,34 +17,31 @@ import argparse
 import json
 import os
 import statistics
-import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
 from benchlib import (
+    BAY_SCANS,
+    PROCESS,
     Measured,
-    bay_scan,
-    bay_scene,
     big_bin,
     big_bin_scan,
-    cloudcompare_command,
-    cloudcompare_report_volume,
     compile_package,
     fused_cloud,
     header,
     measured,
+    measured_cloudcompare,
+    scan_and_cloud,
+    write_bay_batch,
     write_report,
 )
 
-from silo_agent.scan import Scan, write_ply, write_scan
+from silo_agent.scan import Scan
 from silo_agent.sim.simulate import SimRig
 
-PROCESS = [sys.executable, "-m", "silo_agent", "process"]
-ENV = os.environ | {"QT_QPA_PLATFORM": "offscreen"}
 MEMORY_CAP_MB = 3 * 1024
-BAY_SCANS = 12
 
 
 def _median(runs: list[Measured], what: str) -> float:
@@ -55,16 +52,12 @@ def _side_by_side(
     scan: Scan, step: float, runs: int, work: Path
 ) -> tuple[list[Measured], list[Measured], float, float]:
     """(agent runs, CloudCompare runs, agent volume, CloudCompare volume), alternating."""
-    scan_dir = write_scan(replace(scan, reconstruction={"grid_step_m": step}), work / "scan")
-    cc_dir = work / "cc"
-    cc_dir.mkdir()
-    ply = cc_dir / "fused.ply"
-    write_ply(ply, fused_cloud(scan, step))
+    scan_dir, ply = scan_and_cloud(scan, step, work)
     agent, cc = [], []
     for _ in range(runs):
         agent.append(measured([*PROCESS, str(scan_dir), "--grid-step", f"{step:g}", "--json"]))
-        cc.append(measured(cloudcompare_command(ply, step, scan.site.floor_z), cc_dir, ENV))
-        cc_volume = cloudcompare_report_volume(cc_dir)
+        run, cc_volume = measured_cloudcompare(ply, step, scan.site.floor_z)
+        cc.append(run)
     return agent, cc, json.loads(agent[-1].stdout)["volume_m3"], cc_volume
 
 
@@ -130,22 +123,11 @@ def _met(ok: bool) -> str:
 
 
 def section_bay(root: Path) -> list[str]:
-    scene = bay_scene()
-    rig = SimRig(scene)
+    scene, _, plys = write_bay_batch(root, 0.01)
     cache = root / "bay-cache"
-    plys = []
-    for seed in range(BAY_SCANS):
-        scan = bay_scan(scene, seed, rig)
-        write_scan(scan, cache / scan.scan_id)
-        ply = root / "bay-cc" / scan.scan_id / "fused.ply"
-        ply.parent.mkdir(parents=True)
-        write_ply(ply, fused_cloud(scan, 0.01))
-        plys.append(ply)
     batch = measured([*PROCESS, str(cache), "--grid-step", "0.01", "--json"])
     results = [json.loads(line) for line in batch.stdout.splitlines()]
-    cc = [measured(cloudcompare_command(p, 0.01, 0.0), p.parent, ENV) for p in plys]
-    for p in plys:
-        cloudcompare_report_volume(p.parent)
+    cc = [measured_cloudcompare(p, 0.01, 0.0)[0] for p in plys]
     n = BAY_SCANS
     cc_wall, cc_cpu = sum(r.wall_s for r in cc), sum(r.cpu_s for r in cc)
     coverage = statistics.median(r["coverage"] for r in results)
