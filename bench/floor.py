@@ -61,6 +61,15 @@ BARE = [sys.executable, str(Path(__file__).with_name("bare_volume.py"))]
 NOISE_FACTOR = 1.0
 BAY_STEP_M = 0.01
 BATCH_TARGET = 0.8  # the batch's target, x CloudCompare once per scan
+STAGES = (  # the agent's `timings_s`, in its order
+    "walls",
+    "fuse_crop",
+    "registration_residual",
+    "clustered_means",
+    "fill",
+    "slope_correction",
+    "volume",
+)
 
 
 def _median_of(runs: int, work: Callable[[], object]) -> float:
@@ -100,15 +109,15 @@ class SideBySide:
     cc_s: float
     bare_s: float
     agent_s: float
-    crossing_s: float  # (b): every camera's WallCrossing.of_cloud
-    steadying_s: float  # (b): wall_free of every camera's crossings
+    crossing_s: float  # every camera's WallCrossing.of_cloud, in one process
+    wall_free_s: float  # wall_free of every camera's crossings: verdict and steadying
     bare_volume: float
     agent_volume: float
     stages: dict[str, float]  # the agent's timings_s, its median run
 
     @property
     def floor_s(self) -> float:
-        return self.bare_s + self.crossing_s + self.steadying_s
+        return self.bare_s + self.crossing_s + self.wall_free_s
 
 
 def side_by_side(scan: Scan, scene: Scene, step: float, runs: int, work: Path) -> SideBySide:
@@ -121,13 +130,13 @@ def side_by_side(scan: Scan, scene: Scene, step: float, runs: int, work: Path) -
         bare.append(measured([*BARE, f"{step:g}", str(scan_dir)]))
         agent.append(measured([*PROCESS, str(scan_dir), "--grid-step", f"{step:g}", "--json"]))
     middle = sorted(agent, key=lambda r: r.wall_s)[len(agent) // 2]
-    crossing_s, steadying_s = per_point_stages(scan_dir, scene, runs)
+    crossing_s, wall_free_s = per_point_stages(scan_dir, scene, runs)
     return SideBySide(
         statistics.median(r.wall_s for r in cc),
         statistics.median(r.wall_s for r in bare),
         statistics.median(r.wall_s for r in agent),
         crossing_s,
-        steadying_s,
+        wall_free_s,
         json.loads(bare[-1].stdout)["volume_m3"],
         json.loads(agent[-1].stdout)["volume_m3"],
         json.loads(middle.stdout)["timings_s"],
@@ -145,12 +154,12 @@ def report(runs: int, root: Path, cameras: Sequence[int], steps: Sequence[float]
             with tempfile.TemporaryDirectory(dir=root) as tmp:
                 r = side_by_side(scan, scene, step, runs, Path(tmp))
             cc, bare, agent, floor = r.cc_s, r.bare_s, r.agent_s, r.floor_s
-            crossing, steadying = r.crossing_s, r.steadying_s
+            crossing, verdict = r.crossing_s, r.wall_free_s
             bare_error = 100 * (r.bare_volume - truth) / truth
             agent_error = 100 * (r.agent_volume - truth) / truth
             rows.append(
                 f"| {count} | {step * 100:g} cm | {cc:.3f} | {bare:.3f} ({bare / cc:.2f}x) |"
-                f" {crossing:.3f} | {steadying:.3f} | **{floor:.3f} ({floor / cc:.2f}x)** |"
+                f" {crossing:.3f} | {verdict:.3f} | **{floor:.3f} ({floor / cc:.2f}x)** |"
                 f" {agent:.3f} ({agent / cc:.2f}x) | {bare_error:+.2f} % | {agent_error:+.2f} % |"
             )
             stages = r.stages
@@ -167,7 +176,7 @@ def report(runs: int, root: Path, cameras: Sequence[int], steps: Sequence[float]
             verdicts.append(
                 f"- {count} cameras, {step * 100:g} cm: CloudCompare {cc:.2f} s; the bare numpy"
                 f" volume alone {bare / cc:.2f}x of it, {room}; the two per-point wall stages"
-                f" {crossing + steadying:.2f} s: floor {floor / cc:.2f}x, the agent"
+                f" {crossing + verdict:.2f} s: floor {floor / cc:.2f}x, the agent"
                 f" {agent / cc:.2f}x"
             )
     return [
@@ -248,17 +257,6 @@ def batch(runs: int, root: Path) -> list[str]:
         f" agent spends {agent_s - floor:.3f} s on them",
         "",
     ]
-
-
-STAGES = (
-    "walls",
-    "fuse_crop",
-    "registration_residual",
-    "clustered_means",
-    "fill",
-    "slope_correction",
-    "volume",
-)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
