@@ -452,8 +452,13 @@ def bay_scan(scene: Scene, seed: int, rig: SimRig) -> Scan:
 BAY_SCANS = 12  # the batch of bay scans, a third of each unobserved
 
 
+def bay_cache(root: Path) -> Path:
+    """Where `write_bay_batch` writes its scans under `root`: a cache `process` reads whole."""
+    return root / "bay-cache"
+
+
 def write_bay_batch(root: Path, step: float) -> tuple[Scene, list[Path], list[Path]]:
-    """BAY_SCANS scans of `bay_scene` (seeds 0..) written under `root / "bay-cache"`, and each
+    """BAY_SCANS scans of `bay_scene` (seeds 0..) written to `bay_cache(root)`, and each
     one's fused, cropped cloud for CloudCompare alone in a directory under `root / "bay-cc"`:
     (the scene, the scan directories, the PLYs)."""
     scene = bay_scene()
@@ -461,7 +466,7 @@ def write_bay_batch(root: Path, step: float) -> tuple[Scene, list[Path], list[Pa
     directories, plys = [], []
     for seed in range(BAY_SCANS):
         scan = bay_scan(scene, seed, rig)
-        directories.append(write_scan(scan, root / "bay-cache" / scan.scan_id))
+        directories.append(write_scan(scan, bay_cache(root) / scan.scan_id))
         ply = root / "bay-cc" / scan.scan_id / "fused.ply"
         ply.parent.mkdir(parents=True)
         write_ply(ply, fused_cloud(scan, step))

@@ -166,13 +166,13 @@ def measure(name: str, inputs: Inputs, root: Path) -> str:
 def bay_batch(root: Path, old_tree: Path | None) -> list[str]:
     """bench/silos.py section (b) with this tree, then the same batch by `old_tree`'s code and
     by this tree's again, alternating (one `process CACHE` of the 12 scans each)."""
-    from benchlib import CLOUDCOMPARE_ENV, PROCESS, measured
+    from benchlib import CLOUDCOMPARE_ENV, PROCESS, bay_cache, measured
     from silos import section_bay
 
     lines = section_bay(root)
     if old_tree is None:
         return lines
-    cache = root / "bay-cache"
+    cache = bay_cache(root)
     command = [*PROCESS, str(cache), "--grid-step", "0.01", "--json"]
     trees = {"old": old_tree.resolve(), "new": Path(__file__).resolve().parent.parent}
     rows = []

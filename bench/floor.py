@@ -39,6 +39,7 @@ from benchlib import (
     BAY_SCANS,
     PROCESS,
     Measured,
+    bay_cache,
     big_bin,
     big_bin_scan,
     compile_package,
@@ -224,7 +225,7 @@ def membrane_fill_s(directories: Sequence[Path], runs: int) -> float:
 
 def batch(runs: int, root: Path) -> list[str]:
     _, directories, plys = write_bay_batch(root, BAY_STEP_M)
-    cache = root / "bay-cache"
+    cache = bay_cache(root)
     agent, bare, cc = [], [], []
     for _ in range(runs):
         agent.append(measured([*PROCESS, str(cache), "--grid-step", f"{BAY_STEP_M:g}", "--json"]))

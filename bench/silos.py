@@ -26,6 +26,7 @@ from benchlib import (
     BAY_SCANS,
     PROCESS,
     Measured,
+    bay_cache,
     big_bin,
     big_bin_scan,
     compile_package,
@@ -124,7 +125,7 @@ def _met(ok: bool) -> str:
 
 def section_bay(root: Path) -> list[str]:
     scene, _, plys = write_bay_batch(root, 0.01)
-    cache = root / "bay-cache"
+    cache = bay_cache(root)
     batch = measured([*PROCESS, str(cache), "--grid-step", "0.01", "--json"])
     results = [json.loads(line) for line in batch.stdout.splitlines()]
     cc = [measured_cloudcompare(p, 0.01, 0.0)[0] for p in plys]
