@@ -14,7 +14,7 @@ from silo_agent.analysis.scan_analysis import ScanAnalysis, analyse
 from silo_agent.analysis.summary import ScanSummary, summarise
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, match_ids
-from silo_agent.detect.geometric import Surface, grid_of
+from silo_agent.detect.geometric import DETECTION_STEP_M, Surface, detection_map, grid_of
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.volume import base_surface
 from silo_agent.reconstruct import Reconstruction, reconstruct
@@ -40,7 +40,15 @@ def nearest(piles: list[Pile], xy: tuple[float, float]) -> Pile:
     return min(piles, key=lambda p: np.hypot(p.centroid[0] - xy[0], p.centroid[1] - xy[1]))
 
 
-def test_finds_every_pile_with_its_centroid_and_volume(piles_result) -> None:
+@pytest.fixture(scope="module")
+def fine_result(piles_scan: Scan):
+    """The same scan on a 1 cm grid: its piles are found on 2 cm blocks (`detection_map`)."""
+    return analyse(piles_scan, ReconstructionConfig(grid_step_m=0.01), DetectionConfig())
+
+
+@pytest.mark.parametrize("result", ["piles_result", "fine_result"])
+def test_finds_every_pile_with_its_centroid_and_volume(result: str, request) -> None:
+    piles_result = request.getfixturevalue(result)
     truth = make_scene("piles").piles
     piles = piles_result.piles
     assert len(piles) == len(truth)
@@ -68,6 +76,25 @@ def test_pile_columns_are_the_volume_s_own(piles_result) -> None:
     base = base_surface(grid_of(hm), hm.heights.astype(float), "floor", result.floor_z)
     surface = Surface.of(hm, base, result.floor_z, None)
     assert float(np.sum(surface.columns)) == pytest.approx(result.volume_m3, rel=1e-12)
+
+
+def test_a_fine_map_is_searched_in_blocks_that_keep_its_volume(fine_result) -> None:
+    """A map finer than DETECTION_STEP_M is searched in blocks no finer, whose columns still
+    add up to the published volume; a map as coarse is searched as it is."""
+    fine = fine_result.reconstruction.heightmap
+    blocks = detection_map(fine)
+    assert blocks.step == pytest.approx(DETECTION_STEP_M)
+    assert blocks.shape == tuple(-(-n // 2) for n in fine.shape)
+    # the blocks' share of the region is the region's area
+    assert float(np.sum(blocks.inside)) * blocks.step**2 == pytest.approx(
+        float(np.sum(fine.inside)) * fine.step**2, rel=1e-12
+    )
+    base = base_surface(grid_of(blocks), blocks.heights.astype(float), "floor", fine.floor_z)
+    surface = Surface.of(blocks, base, fine.floor_z, None)
+    volume = fine_result.reconstruction.volume_m3
+    assert float(np.sum(surface.columns)) == pytest.approx(volume, rel=1e-9)
+    coarse = detection_map(blocks)
+    assert coarse is blocks
 
 
 def test_summary_and_description_carry_the_piles(piles_result) -> None:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
-from silo_agent.detect.geometric import Surface, detect_piles, grid_of
+from silo_agent.detect.geometric import Surface, detect_piles, detection_map, grid_of
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.volume import base_surface
 from silo_agent.reconstruct import Reconstruction, reconstruct, released
@@ -119,7 +119,7 @@ def analyse(
     found_robots = robots if onnx is not None else None
     if result.heightmap is None:
         return ScanAnalysis(result, [], found_robots)
-    hm = result.heightmap
+    hm = detection_map(result.heightmap)
     base = base_surface(grid_of(hm), hm.heights.astype(float), site.base, site.floor_z)
     surface = Surface.of(hm, base, site.floor_z, detection.background_m)
     piles: list[Pile] = []

@@ -27,17 +27,19 @@ from scipy import ndimage
 
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
+from silo_agent.grid.filters import block_sums
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.smooth import masked_smooth
 from silo_agent.grid.volume import DENOISE_SCALE_M, counted_columns, denoised_columns
 
-__all__ = ["Surface", "detect_piles", "grid_of", "relief"]
+__all__ = ["Surface", "detect_piles", "detection_map", "grid_of", "relief"]
 
 EDGE_M = 0.01  # a cell belongs to a pile's footprint when it stands this far above the base
 BASIN_SMOOTHING_M = 0.04  # Gaussian sigma of the surface the basins are traced on
 PEAK_SMOOTHING_M = 0.10  # sigma of the surface peaks and saddles are read on: D455 noise at
 # 3-5 m leaves bumps of several cm a few decimetres wide, which must not count as piles
+DETECTION_STEP_M = 0.02  # piles are found on cells no finer than this (`detection_map`)
 
 
 def grid_of(heightmap: HeightMap) -> Grid:
@@ -61,6 +63,26 @@ def relief(heightmap: HeightMap, base: np.ndarray, background_m: float | None) -
         opened = ndimage.maximum_filter(np.where(region, eroded, -np.inf), size)
         floor = np.maximum(base, np.where(region, opened, base))
     return np.where(region, heights - floor, np.nan)
+
+
+def detection_map(heightmap: HeightMap) -> HeightMap:
+    """The map piles are found on: `heightmap`, or where its cells are finer than
+    DETECTION_STEP_M, the same map in k x k blocks no finer (`HeightMap.coarsened`: the same
+    volume, so pile volumes still add up to the scan's).
+
+    The basins are traced on a surface smoothed over BASIN_SMOOTHING_M, twice the blocks'
+    width: a finer map finds the same piles at k^2 times the cells. Measured with the whole
+    detection (`Surface.of` + `detect_piles`, one core): the 12 m bin of bench/silos.py at
+    1 cm, 241 -> 96 ms, the bay scans of bench/floor.py (c) 46-59 -> 19-26 ms; pile volumes
+    within 0.2 % where the same basins are found, peaks 1-2 cm lower (a block's mean, not its
+    highest cell's height)."""
+    k = int(DETECTION_STEP_M / heightmap.step + 1e-9)
+    if k < 2:
+        return heightmap
+    rows, cols = -(-heightmap.shape[0] // k), -(-heightmap.shape[1] // k)
+    # each block's share of the region: the sum of its cells' (areas add)
+    inside = block_sums(heightmap.inside.astype(np.float64), k)[:rows, :cols] / (k * k)
+    return heightmap.coarsened(k, inside)
 
 
 _OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
