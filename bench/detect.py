@@ -3,8 +3,8 @@
 The simulated `piles` scene from the paper's four views A1 A3 A5 A7 (848 x 480, colour on), one
 reconstruction, then median wall times of:
 
-- geometric: height map -> piles as `analyse` finds them (`detection_map`, the base,
-  `Surface.of`, `detect_piles`), at 2 cm and 1 cm grids;
+- geometric: height map -> piles as `analyse` finds them (`Surface.for_piles`, whose map is
+  no finer than 2 cm, then `detect_piles`), at 2 cm and 1 cm grids;
 - onnx: everything silo-agent does around the model for the four cameras (colour image from the
   cloud, letterbox, decode, class-aware NMS, box -> silo point, radius clustering of the fused
   cloud, per-pile measures). No model ships with silo-agent, so the network is a stand-in built
@@ -35,9 +35,8 @@ from onnx import TensorProto, helper
 
 from silo_agent.config import DetectionConfig, ReconstructionConfig
 from silo_agent.detect import fused_points, onnx_piles
-from silo_agent.detect.geometric import Surface, detect_piles, detection_map, grid_of
+from silo_agent.detect.geometric import Surface, detect_piles, detection_map
 from silo_agent.detect.onnx_yolo import YoloModel, locate
-from silo_agent.grid.volume import base_surface
 from silo_agent.reconstruct import reconstruct
 from silo_agent.sim import make_scene, simulate
 
@@ -130,11 +129,8 @@ def main() -> None:
         hm = result.heightmap
 
         def geometric(hm=hm) -> list:
-            blocks = detection_map(hm)
-            base = base_surface(
-                grid_of(blocks), blocks.heights.astype(float), scan.site.base, scan.site.floor_z
-            )
-            return detect_piles(Surface.of(blocks, base, scan.site.floor_z, None), detection)
+            surface = Surface.for_piles(hm, scan.site.base, scan.site.floor_z, None)
+            return detect_piles(surface, detection)
 
         piles = geometric()
         rows.append(
@@ -148,11 +144,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         model = YoloModel(stand_in_model(Path(tmp) / "stand-in.onnx"))
-        blocks = detection_map(hm)
-        base = base_surface(
-            grid_of(blocks), blocks.heights.astype(float), scan.site.base, scan.site.floor_z
-        )
-        surface = Surface.of(blocks, base, scan.site.floor_z, None)
+        surface = Surface.for_piles(hm, scan.site.base, scan.site.floor_z, None)
         cloud = fused_points(scan.cameras)
 
         def onnx_path() -> list:

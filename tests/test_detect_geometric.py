@@ -89,8 +89,8 @@ def test_a_fine_map_is_searched_in_blocks_that_keep_its_volume(fine_result) -> N
     assert float(np.sum(blocks.inside)) * blocks.step**2 == pytest.approx(
         float(np.sum(fine.inside)) * fine.step**2, rel=1e-12
     )
-    base = base_surface(grid_of(blocks), blocks.heights.astype(float), "floor", fine.floor_z)
-    surface = Surface.of(blocks, base, fine.floor_z, None)
+    surface = Surface.for_piles(fine, "floor", fine.floor_z, None)  # as `analyse` finds piles
+    assert surface.heightmap.step == pytest.approx(DETECTION_STEP_M)
     volume = fine_result.reconstruction.volume_m3
     assert float(np.sum(surface.columns)) == pytest.approx(volume, rel=1e-9)
     coarse = detection_map(blocks)

@@ -16,9 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 from silo_agent.config import CalibrationConfig, DetectionConfig, ReconstructionConfig
 from silo_agent.detect import Pile, Robot, fused_points, match_ids, onnx_piles, robots_of
-from silo_agent.detect.geometric import Surface, detect_piles, detection_map, grid_of
+from silo_agent.detect.geometric import Surface, detect_piles
 from silo_agent.grid.geometry import points_outside
-from silo_agent.grid.volume import base_surface
 from silo_agent.reconstruct import Reconstruction, reconstruct, released
 from silo_agent.scan import Scan, Site
 
@@ -119,9 +118,7 @@ def analyse(
     found_robots = robots if onnx is not None else None
     if result.heightmap is None:
         return ScanAnalysis(result, [], found_robots)
-    hm = detection_map(result.heightmap)
-    base = base_surface(grid_of(hm), hm.heights.astype(float), site.base, site.floor_z)
-    surface = Surface.of(hm, base, site.floor_z, detection.background_m)
+    surface = Surface.for_piles(result.heightmap, site.base, site.floor_z, detection.background_m)
     piles: list[Pile] = []
     if detection.geometric:
         piles += detect_piles(surface, detection)

@@ -31,7 +31,12 @@ from silo_agent.grid.filters import block_sums
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.smooth import masked_smooth
-from silo_agent.grid.volume import DENOISE_SCALE_M, counted_columns, denoised_columns
+from silo_agent.grid.volume import (
+    DENOISE_SCALE_M,
+    base_surface,
+    counted_columns,
+    denoised_columns,
+)
 
 __all__ = ["Surface", "detect_piles", "detection_map", "grid_of", "relief"]
 
@@ -315,6 +320,17 @@ class Surface:
         columns = counted * grid.cell_area
         xs, ys = heightmap.cell_centres()
         return cls(heightmap, floor_z, smooth, coarse, surface, columns, xs, ys)
+
+    @classmethod
+    def for_piles(
+        cls, heightmap: HeightMap, base: str, floor_z: float, background_m: float | None
+    ) -> Surface:
+        """The surface piles are found on: `heightmap` no finer than DETECTION_STEP_M
+        (`detection_map`) above its base (`base`, the site's: "floor" or "boundary")."""
+        blocks = detection_map(heightmap)
+        grid = grid_of(blocks)
+        under = base_surface(grid, blocks.heights.astype(float), base, floor_z)
+        return cls.of(blocks, under, floor_z, background_m)
 
     def pile(
         self,
