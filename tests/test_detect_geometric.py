@@ -79,8 +79,9 @@ def test_pile_columns_are_the_volume_s_own(piles_result) -> None:
 
 
 def test_a_fine_map_is_searched_in_blocks_that_keep_its_volume(fine_result) -> None:
-    """A map finer than DETECTION_STEP_M is searched in blocks no finer, whose columns still
-    add up to the published volume; a map as coarse is searched as it is."""
+    """A 1 cm map is searched in 2 x 2 blocks, up to DETECTION_STEP_M wide, whose columns
+    still add up to the published volume; a map whose cells are wider than half of it is
+    searched as it is."""
     fine = fine_result.reconstruction.heightmap
     blocks = detection_map(fine)
     assert blocks.step == pytest.approx(DETECTION_STEP_M)
@@ -93,8 +94,9 @@ def test_a_fine_map_is_searched_in_blocks_that_keep_its_volume(fine_result) -> N
     assert surface.heightmap.step == pytest.approx(DETECTION_STEP_M)
     volume = fine_result.reconstruction.volume_m3
     assert float(np.sum(surface.columns)) == pytest.approx(volume, rel=1e-9)
-    coarse = detection_map(blocks)
-    assert coarse is blocks
+    assert detection_map(blocks) is blocks
+    wider = dataclasses.replace(fine, step=0.015)  # two of its cells would be 3 cm
+    assert detection_map(wider) is wider
 
 
 def test_summary_and_description_carry_the_piles(piles_result) -> None:

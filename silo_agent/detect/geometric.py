@@ -44,7 +44,7 @@ EDGE_M = 0.01  # a cell belongs to a pile's footprint when it stands this far ab
 BASIN_SMOOTHING_M = 0.04  # Gaussian sigma of the surface the basins are traced on
 PEAK_SMOOTHING_M = 0.10  # sigma of the surface peaks and saddles are read on: D455 noise at
 # 3-5 m leaves bumps of several cm a few decimetres wide, which must not count as piles
-DETECTION_STEP_M = 0.02  # piles are found on cells no finer than this (`detection_map`)
+DETECTION_STEP_M = 0.02  # piles are found on blocks of cells up to this wide (`detection_map`)
 
 
 def grid_of(heightmap: HeightMap) -> Grid:
@@ -71,9 +71,10 @@ def relief(heightmap: HeightMap, base: np.ndarray, background_m: float | None) -
 
 
 def detection_map(heightmap: HeightMap) -> HeightMap:
-    """The map piles are found on: `heightmap`, or where its cells are finer than
-    DETECTION_STEP_M, the same map in k x k blocks no finer (`HeightMap.coarsened`: the same
-    volume, so pile volumes still add up to the scan's).
+    """The map piles are found on: `heightmap` in blocks of k x k cells, k the most whose
+    block is no wider than DETECTION_STEP_M (2 at 1 cm, 4 at 5 mm; 1, the map itself, on cells
+    wider than 1 cm), made by `HeightMap.coarsened` (the same volume, so pile volumes still
+    add up to the scan's).
 
     The basins are traced on a surface smoothed over BASIN_SMOOTHING_M, twice the blocks'
     width: a finer map finds the same piles at k^2 times the cells. Measured with the whole
@@ -325,7 +326,7 @@ class Surface:
     def for_piles(
         cls, heightmap: HeightMap, base: str, floor_z: float, background_m: float | None
     ) -> Surface:
-        """The surface piles are found on: `heightmap` no finer than DETECTION_STEP_M
+        """The surface piles are found on: `heightmap` in blocks up to DETECTION_STEP_M wide
         (`detection_map`) above its base (`base`, the site's: "floor" or "boundary")."""
         blocks = detection_map(heightmap)
         grid = grid_of(blocks)
