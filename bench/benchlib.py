@@ -247,8 +247,9 @@ class Measured:
     stdout: str
 
 
-def compile_package() -> None:
-    """Compile silo_agent's modules to bytecode, as `pip install` does, so that a timed
+def timed_on(cpu: int) -> None:
+    """Set this process up for timing whole processes: pinned to `cpu` (its children inherit
+    it), and silo_agent's modules compiled to bytecode, as `pip install` does, so that a timed
     `process` reads them compiled: this checkout is an editable install, and a shell with
     PYTHONDONTWRITEBYTECODE set (this machine's) would have every run compile all of them
     again (about 0.1 s a process), which no installed gateway pays."""
@@ -256,6 +257,7 @@ def compile_package() -> None:
 
     import silo_agent
 
+    os.sched_setaffinity(0, {cpu})
     compileall.compile_dir(Path(silo_agent.__file__).parent, quiet=1)
 
 

@@ -42,11 +42,11 @@ from benchlib import (
     bay_cache,
     big_bin,
     big_bin_scan,
-    compile_package,
     header,
     measured,
     measured_cloudcompare,
     scan_and_cloud,
+    timed_on,
     write_bay_batch,
     write_report,
 )
@@ -269,8 +269,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--parts", default="a,c", help="sections: a (with b), c, or a,c (default)")
     p.add_argument("--out", type=Path, default=Path("bench/results/floor.md"))
     args = p.parse_args(argv)
-    os.sched_setaffinity(0, {args.cpu})
-    compile_package()
+    timed_on(args.cpu)
     cameras = [int(c) for c in args.cameras.split(",")]
     steps = [float(s) for s in args.steps.split(",")]
     if any(max(cameras) % c for c in cameras):

@@ -34,10 +34,10 @@ from benchlib import (
     bay_scene,
     big_bin,
     big_bin_scan,
-    compile_package,
     header,
     measured,
     resampled,
+    timed_on,
     write_report,
 )
 from scipy import ndimage
@@ -305,8 +305,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--quick", action="store_true", help="smoke run: three sizes per series")
     p.add_argument("--out", type=Path, default=Path("bench/results/scaling.md"))
     args = p.parse_args(argv)
-    os.sched_setaffinity(0, {args.cpu})
-    compile_package()
+    timed_on(args.cpu)
     points, cells, cameras = (
         (POINTS[:3], CELLS[:3], CAMERAS[:3]) if args.quick else (POINTS, CELLS, CAMERAS)
     )

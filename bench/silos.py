@@ -29,12 +29,12 @@ from benchlib import (
     bay_cache,
     big_bin,
     big_bin_scan,
-    compile_package,
     fused_cloud,
     header,
     measured,
     measured_cloudcompare,
     scan_and_cloud,
+    timed_on,
     write_bay_batch,
     write_report,
 )
@@ -171,8 +171,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parts = set(args.parts.split(","))
     if not parts or parts - {"a", "b"}:
         p.error(f"--parts: a, b or a,b, not {args.parts!r}")
-    os.sched_setaffinity(0, {args.cpu})
-    compile_package()
+    timed_on(args.cpu)
     diameters = [float(d) for d in args.diameters.split(",")]
     load_before = os.getloadavg()
     head = header("Big silos against CloudCompare", f"pinned to CPU {args.cpu}")
