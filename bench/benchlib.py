@@ -247,17 +247,32 @@ class Measured:
     stdout: str
 
 
+def pinned(cpu: int) -> None:
+    """Pin this process to `cpu`, its BLAS libraries too; children inherit the CPU.
+
+    Pinning binds the calling thread only: numpy's and scipy's OpenBLAS, loaded before it with
+    a worker thread a core, kept theirs on the other core, so a call timed in this process
+    (scaling.py's fills) ran on two cores and counted both threads' CPU time, 1.9-3.3x the
+    one-core figure for scipy's conjugate gradients and pyamg. Their pools are held to one
+    thread; a child started after the pinning sizes its own to the one CPU it inherits."""
+    import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS, so its pool is held too)
+    from threadpoolctl import threadpool_limits  # with scikit-learn, a core dependency
+
+    os.sched_setaffinity(0, {cpu})
+    threadpool_limits(limits=1)
+
+
 def timed_on(cpu: int) -> None:
-    """Set this process up for timing whole processes: pinned to `cpu` (its children inherit
-    it), and silo_agent's modules compiled to bytecode, as `pip install` does, so that a timed
-    `process` reads them compiled: this checkout is an editable install, and a shell with
-    PYTHONDONTWRITEBYTECODE set (this machine's) would have every run compile all of them
-    again (about 0.1 s a process), which no installed gateway pays."""
+    """Set this process up for timing whole processes: `pinned` to `cpu`, and silo_agent's
+    modules compiled to bytecode, as `pip install` does, so that a timed `process` reads them
+    compiled: this checkout is an editable install, and a shell with PYTHONDONTWRITEBYTECODE
+    set (this machine's) would have every run compile all of them again (about 0.1 s a
+    process), which no installed gateway pays."""
     import compileall
 
     import silo_agent
 
-    os.sched_setaffinity(0, {cpu})
+    pinned(cpu)
     compileall.compile_dir(Path(silo_agent.__file__).parent, quiet=1)
 
 

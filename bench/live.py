@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchlib import header
+from benchlib import header, pinned
 
 from silo_agent.config import LiveConfig
 from silo_agent.grid.grid import Grid
@@ -77,7 +77,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     if args.cpu >= 0:
-        os.sched_setaffinity(0, {args.cpu})
+        pinned(args.cpu)
     rig = RobotRig()
     site = rig.robot.base.site
     grid = Grid.over(site.region, 0.02)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from benchlib import header
+from benchlib import header, pinned
 
 from silo_agent.config import Config, LiveConfig, parse_config
 from silo_agent.grid.grid import Grid
@@ -170,7 +170,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     if args.cpu >= 0:
-        os.sched_setaffinity(0, {args.cpu})
+        pinned(args.cpu)
     times = np.arange(0.0, args.seconds, 1.0 / RATE_HZ)
     period = 1.0 / RATE_HZ
     lines = header("Live map with the raking robot", args.note)

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from benchlib import REPO, cloudcompare_volume, fmt, fused_cloud, header, resampled
+from benchlib import REPO, cloudcompare_volume, fmt, fused_cloud, header, pinned, resampled
 
 from silo_agent.base.heap import keep_freed_memory
 from silo_agent.config import ReconstructionConfig
@@ -470,7 +470,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     points, steps = (POINTS[:2], STEPS[:2]) if args.quick else (POINTS, STEPS)
     runs = 2 if args.quick else args.runs
     if not args.all_cores:
-        os.sched_setaffinity(0, {args.cpu})
+        pinned(args.cpu)
     cores = sorted(os.sched_getaffinity(0))
     base = simulate(args.scene, VIEWS, seed=0)
     scan = resampled(base, 4 * 400_000)
