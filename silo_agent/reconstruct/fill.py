@@ -19,7 +19,13 @@ distance transform and a labelling (10-60 ms on 0.2-1.4 M cells):
   above. On those scenes it converges in <= 52 iterations and beats the libraries: pyamg's
   setup alone costs more than the whole solve (on the bay batch of bench/silos.py (b), 94,000
   shallow unknowns a scan: 51 ms, 0.55 us an unknown, against 38 ms for the whole warm-started
-  fill, and 35 ms more to solve), SuperLU 6x slower;
+  fill, and 35 ms more to solve), SuperLU 6x slower. The whole fill, hole sorting included,
+  is 0.32x scipy's conjugate gradients from zero on a bay scan (bench/results/scaling.md);
+  on a 12 m bin's 1 cm grid, whose 157,000 unknowns are scattered cells and thin shadows,
+  the start gains little (it and the iteration from it 86 ms, the iteration from zero 97 ms)
+  and the sorting (40 ms on 1.44 M cells) makes the fill 1.4x the plain iteration; the
+  sorting stays, as without it a deep hole would take hundreds of iterations and a hole with
+  no known cell beside it would make the system singular;
 - a hole 24 cells or more from any known cell that is small (<= 30,000 cells) or compact
   (no more cells than 5 x its depth squared: a square hole has 4): pyamg's classical
   algebraic multigrid as the preconditioner of conjugate gradients, to 1e-10, without the
