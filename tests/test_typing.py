@@ -13,7 +13,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 # no inline types, no stub package
-UNTYPED_LIBRARIES = {"pyrealsense2", "onnxruntime", "apscheduler", "pyamg"}
+UNTYPED_LIBRARIES = {"pyrealsense2", "onnxruntime", "apscheduler", "pyamg", "threadpoolctl"}
 
 
 def _make_test(tmp_path: Path, failing: str | None = None) -> tuple[int, list[str]]:
