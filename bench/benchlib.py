@@ -256,7 +256,7 @@ def pinned(cpu: int) -> None:
     one-core figure for scipy's conjugate gradients and pyamg. Their pools are held to one
     thread; a child started after the pinning sizes its own to the one CPU it inherits."""
     import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS, so its pool is held too)
-    from threadpoolctl import threadpool_limits  # with scikit-learn, a core dependency
+    from threadpoolctl import threadpool_limits
 
     os.sched_setaffinity(0, {cpu})
     threadpool_limits(limits=1)
