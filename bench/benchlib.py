@@ -11,6 +11,7 @@ import re
 import select
 import shlex
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -260,6 +261,24 @@ def pinned(cpu: int) -> None:
 
     os.sched_setaffinity(0, {cpu})
     threadpool_limits(limits=1)
+
+
+def median_seconds(
+    work: Callable[[], object],
+    runs: int,
+    clock: Callable[[], float] = time.perf_counter,
+    warm_up: bool = False,
+) -> float:
+    """Median seconds of `runs` calls of `work` on `clock` (`time.perf_counter`: wall time;
+    `time.process_time`: this process's CPU time), after one untimed call if `warm_up`."""
+    if warm_up:
+        work()
+    times = []
+    for _ in range(runs):
+        start = clock()
+        work()
+        times.append(clock() - start)
+    return statistics.median(times)
 
 
 def timed_on(cpu: int) -> None:

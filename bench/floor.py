@@ -29,7 +29,7 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -45,6 +45,7 @@ from benchlib import (
     header,
     measured,
     measured_cloudcompare,
+    median_seconds,
     scan_and_cloud,
     timed_on,
     write_bay_batch,
@@ -71,16 +72,6 @@ STAGES = (  # the agent's `timings_s`, in its order
     "slope_correction",
     "volume",
 )
-
-
-def _median_of(runs: int, work: Callable[[], object]) -> float:
-    """Median wall time of `runs` calls of `work`."""
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        work()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def per_point_stages(scan_dir: Path, scene: Scene, runs: int) -> tuple[float, float]:
@@ -220,7 +211,7 @@ def membrane_fill_s(directories: Sequence[Path], runs: int) -> float:
         for height, known, inside in holes:
             membrane_fill(height, known, inside)
 
-    return _median_of(runs, fill_all)
+    return median_seconds(fill_all, runs)
 
 
 def batch(runs: int, root: Path) -> list[str]:

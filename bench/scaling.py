@@ -36,6 +36,7 @@ from benchlib import (
     big_bin_scan,
     header,
     measured,
+    median_seconds,
     resampled,
     timed_on,
     write_report,
@@ -222,15 +223,9 @@ def section_largest(by_points: list[Row], by_cells: list[Row]) -> list[str]:
     return [*lines, ""]
 
 
-def _best(fn: Callable[[], object], runs: int = 5) -> float:
-    """Median CPU seconds of `runs` calls after a warm-up."""
-    fn()
-    times = []
-    for _ in range(runs):
-        start = time.process_time()
-        fn()
-        times.append(time.process_time() - start)
-    return statistics.median(times)
+def _cpu_median(work: Callable[[], object], runs: int = 5) -> float:
+    """Median CPU seconds of `runs` calls of `work` after a warm-up."""
+    return median_seconds(work, runs, time.process_time, warm_up=True)
 
 
 def _fill_inputs(scan: Scan, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -258,9 +253,9 @@ def _fill_rows(name: str, scan: Scan) -> list[str]:
     height, known, domain = _fill_inputs(scan, 0.01)
     system = laplace_system(height, domain & ~known, domain)
     matrix = system.matrix()
-    own = _best(lambda: membrane_fill(height, known, domain))
-    direct = _best(lambda: spsolve(matrix.tocsc(), system.rhs), 3)
-    plain = _best(lambda: cg(matrix, system.rhs, rtol=_LARGE_RTOL, atol=0.0, maxiter=5000), 3)
+    own = _cpu_median(lambda: membrane_fill(height, known, domain))
+    direct = _cpu_median(lambda: spsolve(matrix.tocsc(), system.rhs), 3)
+    plain = _cpu_median(lambda: cg(matrix, system.rhs, rtol=_LARGE_RTOL, atol=0.0, maxiter=5000), 3)
     unknowns = f"{len(system.cells):,} unknowns"
     engine_fill = "membrane fill (holes sorted: warm-started scipy cg, pyamg for deep ones)"
     return [
@@ -293,8 +288,8 @@ def section_libraries() -> list[str]:
         "|---|---|---|---|---|",
     ]
     mask = np.random.default_rng(0).random((1200, 1200)) < 0.3
-    own = _best(lambda: dilate_cross(mask, 10))
-    library = _best(lambda: ndimage.binary_dilation(mask, iterations=10))
+    own = _cpu_median(lambda: dilate_cross(mask, 10))
+    library = _cpu_median(lambda: ndimage.binary_dilation(mask, iterations=10))
     lines.append(
         f"| cross dilation, 10 passes (`grid/filters.py`) vs `ndimage.binary_dilation` |"
         f" 1200 x 1200 | {own:.4f} | {library:.4f} | {own / library:.2f} |"
