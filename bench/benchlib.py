@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -261,6 +262,12 @@ def pinned(cpu: int) -> None:
 
     os.sched_setaffinity(0, {cpu})
     threadpool_limits(limits=1)
+
+
+def timing_options(parser: argparse.ArgumentParser, runs: int) -> None:
+    """The timing benches' --runs (default `runs`) and --cpu options."""
+    parser.add_argument("--runs", type=int, default=runs, help="timed runs per figure (median)")
+    parser.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
 
 
 def median_seconds(

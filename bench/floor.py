@@ -48,6 +48,7 @@ from benchlib import (
     median_seconds,
     scan_and_cloud,
     timed_on,
+    timing_options,
     write_bay_batch,
     write_report,
 )
@@ -253,8 +254,7 @@ def batch(runs: int, root: Path) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=3)
-    p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
+    timing_options(p, runs=3)
     p.add_argument("--cameras", default="8,16", help="comma list of camera counts")
     p.add_argument("--steps", default="0.01,0.02", help="comma list of grid steps (m)")
     p.add_argument("--parts", default="a,c", help="sections: a (with b), c, or a,c (default)")

@@ -39,6 +39,7 @@ from benchlib import (
     median_seconds,
     resampled,
     timed_on,
+    timing_options,
     write_report,
 )
 from scipy import ndimage
@@ -304,8 +305,7 @@ def section_libraries() -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=3, help="fresh processes per row (median)")
-    p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
+    timing_options(p, runs=3)
     p.add_argument("--quick", action="store_true", help="smoke run: three sizes per series")
     p.add_argument("--out", type=Path, default=Path("bench/results/scaling.md"))
     args = p.parse_args(argv)

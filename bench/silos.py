@@ -35,6 +35,7 @@ from benchlib import (
     measured_cloudcompare,
     scan_and_cloud,
     timed_on,
+    timing_options,
     write_bay_batch,
     write_report,
 )
@@ -158,8 +159,7 @@ def section_bay(root: Path) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=3)
-    p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
+    timing_options(p, runs=3)
     p.add_argument("--diameters", default="12,20", help="comma list of bin diameters (m)")
     p.add_argument(
         "--parts",

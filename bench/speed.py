@@ -29,7 +29,16 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from benchlib import REPO, cloudcompare_volume, fmt, fused_cloud, header, pinned, resampled
+from benchlib import (
+    REPO,
+    cloudcompare_volume,
+    fmt,
+    fused_cloud,
+    header,
+    pinned,
+    resampled,
+    timing_options,
+)
 
 from silo_agent.base.heap import keep_freed_memory
 from silo_agent.config import ReconstructionConfig
@@ -446,8 +455,7 @@ def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None, runs: int 
 def main(argv: Sequence[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", default="full", choices=["full", "crater"])
-    p.add_argument("--runs", type=int, default=5, help="timed runs per figure (median)")
-    p.add_argument("--cpu", type=int, default=0, help="the one CPU to pin to (default 0)")
+    timing_options(p, runs=5)
     p.add_argument("--all-cores", action="store_true", help="do not pin to one CPU")
     p.add_argument(
         "--quick", action="store_true", help="smoke run: 2 runs, two point counts, two grid steps"
