@@ -27,7 +27,6 @@ from scipy import ndimage
 
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
-from silo_agent.grid.filters import block_sums
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.smooth import masked_smooth
@@ -83,12 +82,7 @@ def detection_map(heightmap: HeightMap) -> HeightMap:
     within 0.2 % where the same basins are found, peaks 1-2 cm lower (a block's mean, not its
     highest cell's height)."""
     k = int(DETECTION_STEP_M / heightmap.step + 1e-9)
-    if k < 2:
-        return heightmap
-    rows, cols = -(-heightmap.shape[0] // k), -(-heightmap.shape[1] // k)
-    # each block's share of the region: the sum of its cells' (areas add)
-    inside = block_sums(heightmap.inside.astype(np.float64), k)[:rows, :cols] / (k * k)
-    return heightmap.coarsened(k, inside)
+    return heightmap.coarsened(k) if k >= 2 else heightmap
 
 
 _OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]

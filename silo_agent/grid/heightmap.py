@@ -57,19 +57,23 @@ class HeightMap:
             return float("nan")
         return float(self.heights[row, col])
 
-    def coarsened(self, k: int, inside: np.ndarray) -> HeightMap:
+    def coarsened(self, k: int, inside: np.ndarray | None = None) -> HeightMap:
         """This map on cells k times as wide (same origin), `inside` their fractions in the
-        region: a cell's height is the mean of its finite cells' (weighted by their fraction
+        region (default the mean of their k x k cells', which is that fraction: areas add):
+        a cell's height is the mean of its finite cells' (weighted by their fraction
         inside), it is observed where most of its area inside was, and its counted height
         keeps the volume: step'^2 x sum(counted' x inside') = step^2 x sum(counted x inside)."""
+        area = block_sums(self.inside.astype(np.float64), k)
+        if inside is None:
+            inside = area / (k * k)
         rows, cols = inside.shape
+        area = area[:rows, :cols]
         known = np.isfinite(self.heights)
         weight = np.where(known, self.inside, 0.0)
         total = block_sums(weight, k)[:rows, :cols]
         with np.errstate(invalid="ignore", divide="ignore"):
             heights = block_sums(np.where(known, self.heights * weight, 0.0), k)[:rows, :cols]
             heights = np.where((total > 0) & (inside > 0), heights / total, np.nan)
-            area = block_sums(self.inside.astype(np.float64), k)[:rows, :cols]
             seen = block_sums(np.where(self.observed, self.inside, 0.0), k)[:rows, :cols]
             counted = None
             if self.counted is not None:
