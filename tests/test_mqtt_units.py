@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import sqlite3
 import struct
@@ -15,6 +16,7 @@ from silo_agent.analysis.summary import ScanSummary
 from silo_agent.cli import main
 from silo_agent.config import ConfigError, MqttConfig
 from silo_agent.grid.heightmap import HeightMap
+from silo_agent.storage.audit import AuditCache
 from silo_agent.telemetry.client import read_secret
 from silo_agent.telemetry.heightmap_codec import (
     HEADER,
@@ -273,3 +275,64 @@ def test_publish_by_hand_refuses_a_bad_file_in_one_line(tmp_path, capsys):
     assert main(argv) == 65
     assert "unknown key(s) colour" in capsys.readouterr().err
     assert not (tmp_path / "outbox.sqlite").exists()
+
+
+def test_publish_by_hand_sends_a_kept_height_map_and_refuses_a_bad_one(tmp_path, capsys):
+    """`silo-agent publish --heightmap`: the map a scan directory keeps (`add_result`) is
+    queued as it was kept; a file that is no such map is exit 65 with one line naming it and
+    the problem, before anything is queued."""
+    config = write_config(tmp_path / "agent.toml", 9, tmp_path)
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps(summary_json()))
+    kept = tmp_path / "scan"
+    kept.mkdir()
+    heightmap = realistic_heightmap(60, 80)
+    AuditCache.add_result(kept, summary_json(), heightmap, {})
+    argv = ["publish", "--config", str(config), "--result", str(result), "--timeout", "0"]
+    bad = {
+        "junk.npz": lambda path: path.write_text("not a map"),
+        "missing.npz": lambda path: None,
+        "array.npz": lambda path: path.write_bytes(_npy_bytes(np.zeros(3))),
+        "no-step.npz": lambda path: np.savez(
+            path, origin=[0, 0], heights=np.zeros((2, 2)), observed=np.ones((2, 2)), inside=1
+        ),
+        "shapes.npz": lambda path: np.savez(
+            path,
+            origin=[0.0, 0.0],
+            step=0.1,
+            heights=np.zeros((2, 2)),
+            observed=np.ones((2, 3), bool),
+            inside=np.ones((2, 2)),
+        ),
+    }
+    problems = {
+        "junk.npz": "not an .npz of origin, step, heights, observed, inside",
+        "missing.npz": "cannot read it",
+        "array.npz": "a single array",
+        "no-step.npz": "no step in it",
+        "shapes.npz": "observed and inside of its shape",
+    }
+    for name, write in bad.items():
+        path = tmp_path / name
+        write(path)
+        assert main([*argv, "--heightmap", str(path)]) == 65, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"silo-agent: {path}: height map: "), err
+        assert problems[name] in err[0]
+        assert not (tmp_path / "outbox.sqlite").exists()
+    assert main([*argv, "--heightmap", str(kept / "heightmap.npz")]) == 1  # no broker: pending
+    queued = Outbox(tmp_path / "outbox.sqlite")
+    maps = [row for row in queued.pending() if row.topic.endswith("/heightmap")]
+    queued.close()
+    assert len(maps) == 1
+    sent = decode_heightmap(maps[0].payload)
+    assert sent.shape == heightmap.shape and sent.origin == heightmap.origin
+    np.testing.assert_array_equal(sent.observed, heightmap.observed)
+    np.testing.assert_allclose(sent.heights, heightmap.heights, atol=0.002, equal_nan=True)
+
+
+def _npy_bytes(values: np.ndarray) -> bytes:
+    """`values` as a .npy file's bytes: one array, not an archive of them."""
+    buffer = io.BytesIO()
+    np.save(buffer, values)
+    return buffer.getvalue()

@@ -18,31 +18,17 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
-import numpy as np
-
 from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import DATA_ERROR, FAILURE, OK
 from silo_agent.cli.common import fail, load_config
-from silo_agent.grid.heightmap import HeightMap
+from silo_agent.storage.audit import load_heightmap
 from silo_agent.telemetry.client import Telemetry
 from silo_agent.telemetry.payloads import Envelope, json_schemas, render_schema, write_schemas
 
 Parsed = TypeVar("Parsed")
 
 DEFAULT_SCHEMAS = Path(__file__).resolve().parents[2] / "config" / "schemas"
-
-
-def load_heightmap(path: Path) -> HeightMap:
-    """A height map saved with numpy.savez(origin=, step=, heights=, observed=, inside=)."""
-    with np.load(path) as data:
-        return HeightMap(
-            origin=(float(data["origin"][0]), float(data["origin"][1])),
-            step=float(data["step"]),
-            heights=data["heights"],
-            observed=data["observed"].astype(bool),
-            inside=data["inside"],
-        )
 
 
 def _emit(topic: str, env: Envelope) -> None:
@@ -78,9 +64,9 @@ def publish(args: argparse.Namespace) -> int:
     try:
         summary = _read(args.result, ScanSummary.from_json)
         event = _read(args.alarm, AlarmEvent.from_json) if args.alarm else None
+        heightmap = load_heightmap(args.heightmap) if args.heightmap else None
     except ValueError as exc:
         return fail(str(exc), DATA_ERROR)
-    heightmap = load_heightmap(args.heightmap) if args.heightmap else None
     telemetry = Telemetry.from_config(config)
     for k in range(args.repeat):
         one = summary

@@ -22,6 +22,7 @@ import re
 import shutil
 import tarfile
 import tempfile
+import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -42,6 +43,7 @@ log = structlog.get_logger(__name__)
 RESULT = "result.json"
 HEIGHTMAP = "heightmap.npz"
 INPUTS = "inputs.json"
+HEIGHTMAP_KEYS = ("origin", "step", "heights", "observed", "inside")  # heightmap.npz's arrays
 UNREPRODUCIBLE = ("timings", "timings_s")  # wall-clock durations: differ on every run
 
 
@@ -270,16 +272,53 @@ def read_heightmap(directory: Path) -> HeightMap | None:
     """The height map kept in a scan directory (`add_result`); None if it is missing or
     unreadable."""
     try:
-        with np.load(directory / HEIGHTMAP) as data:
-            return HeightMap(
-                origin=(float(data["origin"][0]), float(data["origin"][1])),
-                step=float(data["step"]),
-                heights=data["heights"],
-                observed=data["observed"].astype(bool),
-                inside=data["inside"],
-            )
-    except (OSError, KeyError, ValueError):
+        return load_heightmap(directory / HEIGHTMAP)
+    except ValueError:
         return None
+
+
+def load_heightmap(path: Path) -> HeightMap:
+    """A height map as `add_result` keeps it (numpy.savez of HEIGHTMAP_KEYS); ValueError
+    naming the file and what is wrong with it."""
+    problem = f"{path}: height map"
+    expected = f"an .npz of {', '.join(HEIGHTMAP_KEYS)}"
+    try:
+        loaded = np.load(path)  # pickles refused
+    except OSError as exc:
+        raise ValueError(f"{problem}: cannot read it ({exc.strerror or exc})") from None
+    except (EOFError, ValueError, zipfile.BadZipFile):  # empty, a pickle, a damaged zip
+        raise ValueError(f"{problem}: not {expected}") from None
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        raise ValueError(f"{problem}: a single array, not {expected}")
+    with loaded as data:
+        missing = [key for key in HEIGHTMAP_KEYS if key not in data.files]
+        if missing:
+            raise ValueError(f"{problem}: no {', '.join(missing)} in it (not {expected})")
+        try:
+            origin, step = data["origin"], data["step"]
+            heights, observed, inside = data["heights"], data["observed"], data["inside"]
+        except (OSError, EOFError, ValueError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{problem}: unreadable ({exc})") from None
+    arrays = {"origin": origin, "step": step, "heights": heights, "inside": inside}
+    for name, values in {**arrays, "observed": observed}.items():
+        if values.dtype.kind not in ("biuf" if name == "observed" else "iuf"):
+            raise ValueError(f"{problem}: {name} holds {values.dtype}, not numbers")
+    if origin.shape != (2,) or step.shape != () or not np.all(np.isfinite(origin)):
+        raise ValueError(f"{problem}: origin must be 2 finite numbers and step one number")
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"{problem}: step must be a positive number, got {step}")
+    if heights.ndim != 2 or observed.shape != heights.shape or inside.shape != heights.shape:
+        raise ValueError(
+            f"{problem}: heights must be 2-D and observed and inside of its shape, got "
+            f"{heights.shape}, {observed.shape}, {inside.shape}"
+        )
+    return HeightMap(
+        origin=(float(origin[0]), float(origin[1])),
+        step=float(step),
+        heights=heights,
+        observed=observed.astype(bool),
+        inside=inside,
+    )
 
 
 def is_disk_full(exc: OSError) -> bool:
