@@ -134,19 +134,7 @@ def cloudcompare_volume(
     CloudCompare writes `VolumeCalculationReport_<date>.txt` next to the cloud, named to the
     minute, so the cloud sits alone in a fresh directory and the report is read from there.
     """
-    command = [
-        CLOUDCOMPARE,
-        "-SILENT",
-        "-AUTO_SAVE",
-        "OFF",
-        "-O",
-        str(ply),
-        "-VOLUME",
-        "-GRID_STEP",
-        f"{step:g}",
-        "-CONST_HEIGHT",
-        f"{floor_z:g}",
-    ]
+    command = cloudcompare_command(ply, step, floor_z)
     for old in ply.parent.glob("VolumeCalculationReport*.txt"):
         old.unlink()
     start = time.perf_counter()
@@ -154,14 +142,7 @@ def cloudcompare_volume(
         command, env=CLOUDCOMPARE_ENV, capture_output=True, check=True, timeout=timeout_s
     )
     wall = time.perf_counter() - start
-    reports = list(ply.parent.glob("VolumeCalculationReport*.txt"))
-    if len(reports) != 1:
-        raise RuntimeError(f"CloudCompare wrote {len(reports)} volume reports for {ply}")
-    found = re.search(r"^Volume:\s*([-+0-9.eE]+)", reports[0].read_text(), re.MULTILINE)
-    reports[0].unlink()
-    if found is None:
-        raise RuntimeError(f"no 'Volume:' line in CloudCompare's report for {ply}")
-    return CCResult(float(found.group(1)), wall)
+    return CCResult(cloudcompare_report_volume(ply.parent), wall)
 
 
 def cloudcompare_on_scan(scan: Scan, step: float, workdir: Path) -> CCResult:
