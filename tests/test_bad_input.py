@@ -211,3 +211,70 @@ def test_process_rejects_bad_config_before_reading_scan(tmp_path: Path) -> None:
     result = run_cli("process", str(tmp_path / "missing-scan"), "--config", str(path))
     assert result.returncode == 78
     assert "ceiling_z" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "fragments"),
+    [
+        (["simulate", "--seed", "-1"], ["--seed", "whole number >= 0", "'-1'"]),
+        (["simulate", "--grid-step", "-1"], ["--grid-step", "greater than 0.001"]),
+        (["simulate", "--grid-step", "nan"], ["--grid-step", "finite"]),
+        (["simulate", "--calib-error", "nan,0"], ["--calib-error", "finite"]),
+        (["process", "SCAN", "--grid-step", "5"], ["--grid-step", "less than or equal to 1"]),
+        (["flush", "--config", "C", "--timeout", "inf"], ["--timeout", "wait in seconds"]),
+        (["flush", "--config", "C", "--linger", "-1"], ["--linger", "wait in seconds"]),
+    ],
+)
+def test_out_of_range_arguments_are_usage_errors(tmp_path: Path, args, fragments) -> None:
+    """Numbers a command cannot use are refused by the argument they came in, exit 2, before
+    anything is read or written (a negative grid step was written into a simulated scan that
+    `process` then refused; an infinite --timeout waited for ever)."""
+    if args[0] == "simulate":
+        args = ["simulate", "--scene", "cone", "--views", "A1", "--out", "OUT", *args[1:]]
+    args = [str(tmp_path / "out") if a == "OUT" else a for a in args]
+    result = run_cli(*args)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    for fragment in fragments:
+        assert fragment in last, last
+    assert not (tmp_path / "out").exists()
+
+
+def test_simulated_cameras_that_see_nothing_write_no_scan(tmp_path: Path) -> None:
+    """A calibration error so large the camera looks away from the scene would give it an
+    empty cloud, which no scan reader accepts: refused, naming the camera."""
+    out = tmp_path / "scan"
+    result = run_cli(
+        *("simulate", "--scene", "cone", "--views", "A1,A5", "--out", str(out)),
+        *("--calib-error", "0,1000000", "--resolution", "64x48"),
+    )
+    assert result.returncode == 2
+    _assert_clear_failure(result, "sim-A1", "sim-A5", "see nothing of the scene")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["simulate", "simulate --record", "record", "scan"])
+def test_an_output_path_through_a_file_is_one_line(tmp_path: Path, command: str) -> None:
+    """An output directory that cannot be made (a part of its path is a file) is one line
+    naming it, exit 1, before anything is captured, rendered or written."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    target = blocker / "out"
+    demo = Path(__file__).resolve().parent.parent / "config"
+    args = {
+        "simulate": ["simulate", "--scene", "cone", "--views", "A1", "--out", str(target)],
+        "simulate --record": [
+            *("simulate", "--scene", "cone", "--views", "A1"),
+            *("--out", str(tmp_path / "scan"), "--record", str(target)),
+        ],
+        "record": ["record", "--config", str(demo / "silo-agent.example.toml")],
+        "scan": ["scan", "--config", str(demo / "demo.toml")],
+    }[command]
+    if command in ("record", "scan"):
+        args += ["--out", str(target)]
+    result = run_cli(*args)
+    assert result.returncode == 1
+    named = target.parent if command == "simulate" else target  # the scan's parent is made
+    _assert_clear_failure(result, str(named), "cannot write there")
+    assert not (tmp_path / "scan").exists()

@@ -33,10 +33,13 @@ from silo_agent.cli.common import (
     calib_error,
     configure_logging,
     fail,
+    grid_step,
+    non_negative,
     positive,
     resolution,
     seconds,
     views,
+    wait_seconds,
 )
 
 Handler = Callable[[argparse.Namespace], int]
@@ -110,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a scan directory, or a directory of them (an audit cache)",
     )
     p.add_argument("--config", type=Path, help="config file whose settings override the scan's")
-    p.add_argument("--grid-step", type=float, metavar="METRES")
+    p.add_argument("--grid-step", type=grid_step, metavar="METRES")
     p.add_argument(
         "--method",
         choices=METHODS,
@@ -192,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="camera positions A1-A8 (midpoints A1 A3 A5 A7, corners A2 A4 A6 A8)",
     )
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="new scan directory")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative, default=0)
     p.add_argument(
         "--calib-error",
         type=calib_error,
@@ -202,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--grid-step",
-        type=float,
+        type=grid_step,
         metavar="M",
         default=DEFAULT_GRID_STEP_M,
         help="grid step written into the scan's reconstruction settings",
@@ -247,14 +250,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--repeat", type=positive, default=1, help="publish N results, scan ids suffixed -k"
     )
-    p.add_argument("--timeout", type=float, default=30.0, metavar="S")
+    p.add_argument("--timeout", type=wait_seconds, default=30.0, metavar="S")
     p.set_defaults(handler="telemetry:publish")
 
     p = sub.add_parser("flush", help="send what the MQTT outbox holds, then exit")
     p.add_argument("--config", type=Path, required=True, metavar="FILE")
-    p.add_argument("--timeout", type=float, default=30.0, metavar="S")
+    p.add_argument("--timeout", type=wait_seconds, default=30.0, metavar="S")
     p.add_argument(
-        "--linger", type=float, default=0.0, metavar="S", help="stay connected after flushing"
+        "--linger",
+        type=wait_seconds,
+        default=0.0,
+        metavar="S",
+        help="stay connected after flushing",
     )
     p.set_defaults(handler="telemetry:flush")
 

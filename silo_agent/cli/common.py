@@ -4,6 +4,7 @@ and the argument types. Imports nothing heavy: `process --help` loads this."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -57,6 +58,20 @@ def numpy_unused_lazily() -> None:
         setattr(numpy, name, module)
 
 
+def output_directory_problem(path: Path) -> str | None:
+    """Why a command could not make (or write into) the directory `path`, in one line naming
+    it; None if it can. Nothing is created: a command that then has nothing to write leaves
+    no trace."""
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{path}: cannot write there: it or a part of its path is a file"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{path}: cannot write there: permission denied"
+    return None
+
+
 def configure_logging(args: argparse.Namespace) -> None:
     """structlog set up for the command's --log-level (structlog loads here, not at start)."""
     from silo_agent.base.log import configure_logging as configure
@@ -75,6 +90,17 @@ def seconds(text: str) -> float:
     return value
 
 
+def wait_seconds(text: str) -> float:
+    """A wait >= 0 in seconds, finite (0: do not wait)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"want a wait in seconds >= 0, got {text!r}")
+    return value
+
+
 def positive(text: str) -> int:
     """A whole number >= 1."""
     try:
@@ -84,6 +110,32 @@ def positive(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"want a whole number >= 1, got {text!r}")
     return value
+
+
+def non_negative(text: str) -> int:
+    """A whole number >= 0 (a seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"want a whole number >= 0, got {text!r}")
+    return value
+
+
+def grid_step(text: str) -> float:
+    """A grid step in metres, within the bounds a config's `reconstruction.grid_step_m` takes
+    (config/reconstruction.py: the one home of them)."""
+    from pydantic import ValidationError
+
+    from silo_agent.config.reconstruction import ReconstructionConfig
+
+    try:
+        return ReconstructionConfig.model_validate({"grid_step_m": text}).grid_step_m
+    except ValidationError as exc:
+        reason = exc.errors()[0]["msg"]
+        message = f"want a grid step in metres ({reason}), got {text!r}"
+        raise argparse.ArgumentTypeError(message) from None
 
 
 def views(text: str) -> list[str]:
@@ -103,8 +155,8 @@ def calib_error(text: str) -> tuple[float, float]:
         degrees, metres = (float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError("want DEG,M, e.g. 0.5,0.01") from None
-    if degrees < 0 or metres < 0:
-        raise argparse.ArgumentTypeError("DEG and M must be >= 0")
+    if not (0 <= degrees < float("inf") and 0 <= metres < float("inf")):
+        raise argparse.ArgumentTypeError(f"DEG and M must be finite and >= 0, got {text!r}")
     return degrees, metres
 
 

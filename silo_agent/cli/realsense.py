@@ -9,7 +9,7 @@ import sys
 from silo_agent.base.exits import FAILURE, OK
 from silo_agent.capture import CaptureError
 from silo_agent.capture.realsense import list_devices, record_camera
-from silo_agent.cli.common import fail, load_config
+from silo_agent.cli.common import fail, load_config, output_directory_problem
 
 
 def devices(_args: argparse.Namespace) -> int:
@@ -36,6 +36,8 @@ def record(args: argparse.Namespace) -> int:
     live = [camera for camera in config.cameras if camera.source == "realsense"]
     if not live:
         return fail(f'{args.config}: no live cameras (source = "realsense") to record', FAILURE)
+    if problem := output_directory_problem(args.out):
+        return fail(problem, FAILURE)
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
     for camera in live:  # one after another: several D455s streaming at once saturate USB

@@ -8,7 +8,7 @@ import sys
 from datetime import UTC, datetime
 
 from silo_agent.base.exits import CONFIG_ERROR, FAILURE, OK
-from silo_agent.cli.common import fail, load_config
+from silo_agent.cli.common import fail, load_config, output_directory_problem
 from silo_agent.detect import ModelError
 from silo_agent.service.scan_once import Stages, scan_once
 from silo_agent.service.scan_path import new_scan_id
@@ -21,6 +21,8 @@ def scan(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     audit = config.audit.model_copy(update={"directory": args.out}) if args.out else config.audit
     cache = AuditCache(audit, config.silo.id)
+    if problem := output_directory_problem(cache.directory):  # before the cameras capture
+        return fail(problem, FAILURE)
     started = datetime.now(UTC)
     run = scan_once(config, cache, new_scan_id(config, started, cache.names()), started, Stages())
     for failure in run.capture.failures:

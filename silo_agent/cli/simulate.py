@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from silo_agent.base.exits import FAILURE, OK, USAGE
-from silo_agent.cli.common import fail
+from silo_agent.cli.common import fail, output_directory_problem
 from silo_agent.scan import ScanError, write_scan
 from silo_agent.sim import make_scene
 from silo_agent.sim import simulate as render
@@ -13,6 +13,9 @@ from silo_agent.sim.simulate import SimRig, plan_views
 
 
 def simulate(args: argparse.Namespace) -> int:
+    for directory in (args.out.parent, args.record):  # before anything is rendered
+        if directory is not None and (problem := output_directory_problem(directory)):
+            return fail(problem, FAILURE)
     scene = make_scene(args.scene, args.grain)
     rig = SimRig(scene)
     try:
@@ -29,10 +32,19 @@ def simulate(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:  # a layout that does not fit the scene
         return fail(str(exc), USAGE)
+    blind = [c.serial for c in scan.cameras if len(c.points) == 0]
+    if blind:  # a scan with an empty cloud is no silo-scan/1 directory (scan.py reads none)
+        return fail(
+            f"camera(s) {', '.join(blind)} see nothing of the scene (--calib-error "
+            f"{args.calib_error[0]:g},{args.calib_error[1]:g} moves the cameras that far)",
+            USAGE,
+        )
     try:
         write_scan(scan, args.out)
     except ScanError as exc:
         return fail(str(exc), FAILURE)
+    except OSError as exc:
+        return fail(f"{args.out}: cannot write the scan: {exc.strerror or exc}", FAILURE)
     points = sum(len(c.points) for c in scan.cameras)
     print(
         f"{args.out}: {scene.name} ({scene.grain.name}), {len(scan.cameras)} camera(s), "
