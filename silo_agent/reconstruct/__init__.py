@@ -77,6 +77,7 @@ WALL_PASS_POINTS_PER_CELL = 64  # ... on about this many points a cell (_thinned
 WALL_BAND_M = 0.3  # a bin's cells this close to the wall are filled, not measured (_wall_band)
 SAMPLING_GAP_SHARE = 1 / 3  # ... of the cells its points would fill measured (_sampling_gaps)
 BIN_ANALYSIS_STEP_M = 0.05  # a bin is reconstructed on cells no wider (_analysis_blocks)
+UNDER_BASE_M = 0.10  # a measured surface this far under its floor (median): a setup error
 
 
 @dataclass
@@ -755,6 +756,7 @@ def _reconstruct(
         heights = np.where(hole & (heights < base), base, heights)
     else:
         base = base_surface(grid, heights, site.base, site.floor_z)
+    under = _under_base(heights, base, observed) if site.base == "floor" else None
     scale_m = BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
     # a bin keeps the plain clip: its bare steel reads ~0.5 cm low from 8-10 m, an offset
     noise = None
@@ -781,12 +783,25 @@ def _reconstruct(
         bin_cells=bin_cells,
         information=information,
         levels=not first_pass,
+        under_base_m=under,
     )
     result.points["after_downsampling"] = counts.after_downsampling
     result.registration = registration
     if information is not None and blob is not None:
         result.reseat_level = reseat_level(grid, heights, observed, information, blob)
     return result
+
+
+def _under_base(heights: np.ndarray, base: np.ndarray, observed: np.ndarray) -> float | None:
+    """How far the measured surface lies under the floor (the median over its measured cells),
+    if by more than UNDER_BASE_M; else None. Grain cannot lie under the floor: a surface that
+    does says the floor's height (`floor_z`) or the cameras' poses are wrong, and its volume
+    (near nothing, every cell clipped at the floor) is no measurement."""
+    with np.errstate(invalid="ignore"):  # NaN heights: not under
+        deep = np.count_nonzero(observed & (heights < base - UNDER_BASE_M))
+    if 2 * deep <= np.count_nonzero(observed):  # the median is not that deep (a count: cheap)
+        return None
+    return float(np.median((base - heights)[observed]))
 
 
 @dataclass(frozen=True)
@@ -815,12 +830,14 @@ def _result(
     bin_cells: _BinCells | None = None,
     information: np.ndarray | None = None,
     levels: bool = True,
+    under_base_m: float | None = None,
 ) -> Reconstruction:
     """`counted` and `base` (bicm only: the volume is integrated from the map) go into the map;
     `seen` (default `observed`): the cells the cameras covered, for the coverage;
     `information` (reconstruct/trust.py): how well each measured cell is known, for a bin's
     levels; without `levels` the result has no surface levels (a bin's first pass: nothing
-    reads them)."""
+    reads them); `under_base_m` (`_under_base`): the surface lies that far under the floor,
+    and the result is invalid."""
     if bin_cells is None and site.bin is not None:
         bin_cells = _BinCells(grid, site.bin)
     region_area = float(np.sum(grid.inside))
@@ -829,6 +846,12 @@ def _result(
     valid, reason = True, None
     if volume is None:
         valid, reason = False, "no measured point inside the region"
+    elif under_base_m is not None:
+        valid = False
+        reason = (
+            f"the measured surface lies {under_base_m:.2f} m under the floor (median): "
+            "the floor's height (floor_z) or the cameras' poses are wrong"
+        )
     elif coverage < settings.min_coverage:
         valid = False
         reason = f"coverage {coverage:.3f} below the minimum {settings.min_coverage}"
