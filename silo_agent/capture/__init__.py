@@ -62,9 +62,23 @@ def capture_all(config: Config, scan_number: int = 0) -> CaptureResult:
         try:
             camera = open_camera(camera_config, config, scan_number)
             try:
-                result.clouds.append(camera.capture())
+                cloud = camera.capture()
             finally:
                 camera.close()
+            result.clouds.append(_with_points(cloud, camera_config.serial))
         except CaptureError as exc:
             result.failures.append(CameraFailure(camera_config.serial, str(exc)))
     return result
+
+
+def _with_points(cloud: CameraCloud, serial: str) -> CameraCloud:
+    """`cloud`, if it kept a point through the capture's filtering (`scan.measured_only`).
+
+    An empty cloud is a camera that measured nothing (pointed at nothing, blinded, covered),
+    and written into the scan its 0-point cloud file would make the whole scan unreadable,
+    so it fails the camera like any other capture error. Raises CaptureError."""
+    if len(cloud.points):
+        return cloud
+    dropped = cloud.not_measurements
+    why = f" ({dropped} points without a return or out of the depth range)" if dropped else ""
+    raise CaptureError(f"camera {serial}: no valid depth pixels{why}")
