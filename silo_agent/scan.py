@@ -364,9 +364,12 @@ def _open_regular(path: Path) -> Iterator[BinaryIO]:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):  # checked before fdopen, which refuses a directory unnamed
+        os.close(fd)
+        kind = " (a directory)" if stat.S_ISDIR(mode) else ""
+        raise ScanError(f"{path}: not a regular file{kind}")
     with os.fdopen(fd, "rb") as handle:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise ScanError(f"{path}: not a regular file")
         yield handle
 
 

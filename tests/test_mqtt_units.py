@@ -331,6 +331,49 @@ def test_publish_by_hand_sends_a_kept_height_map_and_refuses_a_bad_one(tmp_path,
     np.testing.assert_allclose(sent.heights, heightmap.heights, atol=0.002, equal_nan=True)
 
 
+def test_publish_by_hand_checks_every_file_before_anything_is_queued(tmp_path, capsys):
+    """`silo-agent publish`: a value its payloads refuse, in the result, the alarm event or
+    the height map, is exit 65 with one line naming the file and the key; nothing is queued,
+    not even the result's messages ahead of a bad event."""
+    config = write_config(tmp_path / "agent.toml", 9, tmp_path)
+    good = tmp_path / "result.json"
+    good.write_text(json.dumps(summary_json()))
+    argv = ["publish", "--config", str(config), "--timeout", "0"]
+
+    def refused(args: list[str], starts: str) -> None:
+        assert main([*argv, *args]) == 65, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"silo-agent: {starts}"), err
+        assert not (tmp_path / "outbox.sqlite").exists()
+
+    for key, value in {"coverage": -1, "timings": "x"}.items():
+        path = tmp_path / f"result-{key}.json"
+        path.write_text(json.dumps(summary_json(**{key: value})))
+        refused(["--result", str(path)], f"{path}: result summary: {key}: ")
+    event = {"type": "collapse", "state": "raised", "severity": "critical", "scan_id": "x"}
+    events = {
+        "state": {**event, "state": "bogus"},
+        "severity": {**event, "severity": "dire"},
+        "value": {**event, "value": "big"},
+        "position": {**event, "position": "ab"},
+        "must be a JSON object": [event],
+    }
+    for says, bad in events.items():
+        path = tmp_path / "event.json"
+        path.write_text(json.dumps(bad))
+        refused(["--result", str(good), "--alarm", str(path)], f"{path}: alarm event: {says}")
+    tall = tmp_path / "tall.npz"  # heights spanning 100 m: more than P/heightmap can carry
+    np.savez(
+        tall,
+        origin=[0.0, 0.0],
+        step=0.1,
+        heights=np.array([[0.0, 100.0]]),
+        observed=np.ones((1, 2), bool),
+        inside=np.ones((1, 2)),
+    )
+    refused(["--result", str(good), "--heightmap", str(tall)], f"{tall}: height map: ")
+
+
 def _npy_bytes(values: np.ndarray) -> bytes:
     """`values` as a .npy file's bytes: one array, not an archive of them."""
     buffer = io.BytesIO()

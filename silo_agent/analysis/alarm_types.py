@@ -58,11 +58,15 @@ class AlarmEvent:
     def from_json(cls, data: Mapping[str, Any]) -> AlarmEvent:
         """An event read back (the persisted alarm state, an `EVENT.json` to publish by
         hand); ValueError naming the problem."""
+        if not isinstance(data, Mapping):
+            raise ValueError(f"alarm event: must be a JSON object, got {data!r:.40}")
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"alarm event: unknown key(s) {', '.join(unknown)}")
         position = data.get("position")
+        if position is not None and not isinstance(position, list | tuple):
+            raise ValueError(f"alarm event: position: must be [x, y], got {position!r:.40}")
         try:
             return cls(**{**data, "position": None if position is None else tuple(position)})
         except TypeError as exc:

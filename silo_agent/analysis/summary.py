@@ -237,12 +237,12 @@ def _from_json(cls: type[ScanSummary], data: Mapping[str, Any]) -> ScanSummary:
             ),
         )
         or Cameras(()),
-        points=data.get("points") or {},
-        parameters=data.get("parameters") or {},
-        timings_s=data.get("timings_s") or {},
+        points=_object(data, "points"),
+        parameters=_object(data, "parameters"),
+        timings_s=_durations(data, "timings_s"),
         piles=_part(data, "piles", lambda v: tuple(Pile.from_json(p) for p in v)) or (),
         robots=_part(data, "robots", lambda v: tuple(Robot.from_json(r) for r in v)),
-        registration_residual_m=data.get("registration_residual_m") or {},
+        registration_residual_m=_object(data, "registration_residual_m"),
         registration_residual=_part(
             data,
             "registration_residual",
@@ -251,7 +251,7 @@ def _from_json(cls: type[ScanSummary], data: Mapping[str, Any]) -> ScanSummary:
         or {},
         captured_at=data["captured_at"],
         degraded=data.get("degraded", False),
-        timings=data.get("timings") or {},
+        timings=_durations(data, "timings"),
         reconstructed="points" in data,
     )
 
@@ -265,3 +265,23 @@ def _part(data: Mapping[str, Any], key: str, build: Callable[[Any], Any]) -> Any
         return build(value)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise ValueError(f"{key}: {exc}") from None
+
+
+def _object(data: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+    """`data[key]`, a JSON object ({} where the key is missing or null); ValueError naming
+    the key, not an AttributeError where a consumer walks it."""
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{key}: must be a JSON object, got {value!r:.40}")
+    return value
+
+
+def _durations(data: Mapping[str, Any], key: str) -> Mapping[str, float]:
+    """`data[key]`, stage names to seconds; ValueError naming the key and the stage."""
+    value = _object(data, key)
+    for stage, seconds in value.items():
+        if isinstance(seconds, bool) or not isinstance(seconds, int | float):
+            raise ValueError(f"{key}.{stage}: must be a number of seconds, got {seconds!r:.40}")
+    return value

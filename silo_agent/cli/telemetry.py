@@ -18,13 +18,24 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
+from pydantic import ValidationError
+
 from silo_agent.analysis.alarm_types import AlarmEvent
-from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import DATA_ERROR, FAILURE, OK
 from silo_agent.cli.common import fail, load_config
+from silo_agent.grid.heightmap import HeightMap
+from silo_agent.service.scan_path import checked_summary
 from silo_agent.storage.audit import load_heightmap
 from silo_agent.telemetry.client import Telemetry
-from silo_agent.telemetry.payloads import Envelope, json_schemas, render_schema, write_schemas
+from silo_agent.telemetry.heightmap_codec import encode_heightmap
+from silo_agent.telemetry.payloads import (
+    Envelope,
+    alarm_payload,
+    describe_errors,
+    json_schemas,
+    render_schema,
+    write_schemas,
+)
 
 Parsed = TypeVar("Parsed")
 
@@ -55,16 +66,38 @@ def _read(path: Path, parse: Callable[[dict[str, Any]], Parsed]) -> Parsed:
     """A JSON file parsed; ValueError naming the file and the problem."""
     try:
         return parse(json.loads(path.read_text(encoding="utf-8")))
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         raise ValueError(f"{path}: {exc}") from None
+
+
+def _event(data: dict[str, Any]) -> AlarmEvent:
+    """An alarm event its payload accepts, so a bad value is refused before anything is
+    queued (`publish_alarm` checks it only after the result's messages are)."""
+    event = AlarmEvent.from_json(data)
+    try:
+        alarm_payload(Envelope.new(1), event)
+    except ValidationError as exc:
+        raise ValueError(f"alarm event: {describe_errors(exc)}") from None
+    return event
+
+
+def _heightmap(path: Path, scan_id: str) -> HeightMap:
+    """A kept height map that `P/heightmap` can carry (encoded once here); ValueError naming
+    the file and the problem."""
+    heightmap = load_heightmap(path)
+    try:
+        encode_heightmap(heightmap, scan_id)
+    except ValueError as exc:
+        raise ValueError(f"{path}: height map: {exc}") from None
+    return heightmap
 
 
 def publish(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    try:
-        summary = _read(args.result, ScanSummary.from_json)
-        event = _read(args.alarm, AlarmEvent.from_json) if args.alarm else None
-        heightmap = load_heightmap(args.heightmap) if args.heightmap else None
+    try:  # every file read and checked before anything is queued
+        summary = _read(args.result, checked_summary)
+        event = _read(args.alarm, _event) if args.alarm else None
+        heightmap = _heightmap(args.heightmap, summary.scan_id) if args.heightmap else None
     except ValueError as exc:
         return fail(str(exc), DATA_ERROR)
     telemetry = Telemetry.from_config(config)

@@ -13,7 +13,6 @@ imported where they are used, not at the top: a one-off `process` never needs th
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime
@@ -91,20 +90,30 @@ def new_scan(
     )
 
 
-def settings_of(scan: Scan) -> AnalysisSettings:
+def settings_of(scan: Scan, manifest: Path | None = None) -> AnalysisSettings:
     """The analysis arguments a scan was (or is to be) processed with: its reconstruction
     settings and site, the detection and calibration of its config snapshot (defaults for a
-    scan without one, e.g. a simulated scan)."""
-    snapshot = scan.extra.get(CONFIG_KEY) or {}
-    manifest = f"{scan.scan_id}/{MANIFEST}"
-    settings = _validated(ReconstructionConfig, scan.reconstruction, f"{manifest}: reconstruction")
+    scan without one, e.g. a simulated scan). `manifest`: the scan.json it was read from, which
+    a ScanError names (else the scan id does)."""
+    source = str(manifest) if manifest is not None else f"scan {scan.scan_id}"
+    snapshot = config_snapshot(scan, source)
+    settings = _validated(ReconstructionConfig, scan.reconstruction, f"{source}: reconstruction")
     detection = _validated(
-        DetectionConfig, snapshot.get("detection") or {}, f"{manifest}: config.detection"
+        DetectionConfig, snapshot.get("detection") or {}, f"{source}: {CONFIG_KEY}.detection"
     )
     calibration = _validated(
-        CalibrationConfig, snapshot.get("calibration") or {}, f"{manifest}: config.calibration"
+        CalibrationConfig, snapshot.get("calibration") or {}, f"{source}: {CONFIG_KEY}.calibration"
     )
     return AnalysisSettings(settings, detection, scan.site, calibration)
+
+
+def config_snapshot(scan: Scan, source: str) -> dict[str, Any]:
+    """The config snapshot a scan carries ({} for a scan without one); ScanError naming
+    `source` (its scan.json) when it is not a JSON object."""
+    snapshot = scan.extra.get(CONFIG_KEY) or {}
+    if not isinstance(snapshot, dict):
+        raise ScanError(f"{source}: {CONFIG_KEY}: must be a JSON object, got {snapshot!r:.40}")
+    return snapshot
 
 
 def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
@@ -191,18 +200,17 @@ def no_result_summary(
 def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
     """Piles of the latest cached scan before `scan_id` with a result, so pile ids carry over;
     none when there is no readable one. Ids are `<silo>-<UTC time>`: they sort by time."""
-    from silo_agent.detect import Pile
-    from silo_agent.storage.audit import RESULT
+    from silo_agent.storage.audit import RESULT, read_kept
 
     for entry in reversed(cache.entries()):
         if entry.scan_id >= scan_id:
             continue
         try:
-            summary = json.loads((entry.path / RESULT).read_text(encoding="utf-8"))
-            return [Pile.from_json(p) for p in summary.get("piles") or []]
-        except FileNotFoundError:
-            continue
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+            summary = read_kept(entry.path / RESULT)
+            if summary is None:
+                continue
+            return piles_of(summary, "piles", entry.path / RESULT)
+        except ScanError as exc:
             import structlog
 
             structlog.get_logger(__name__).warning(
@@ -210,6 +218,47 @@ def previous_piles(cache: AuditCache, scan_id: str) -> list[Pile]:
             )
             return []
     return []
+
+
+def piles_of(data: dict[str, Any], key: str, path: Path) -> list[Pile]:
+    """The piles listed under `key` of a JSON object read from `path`; ScanError naming the
+    file and the key when one is not a pile."""
+    from silo_agent.detect import Pile
+
+    try:
+        return [Pile.from_json(p) for p in data.get(key) or []]
+    except KeyError as exc:
+        raise ScanError(f"{path}: {key}: a pile lacks {exc.args[0]!r}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise ScanError(f"{path}: {key}: not a list of piles ({exc})") from None
+
+
+def checked_summary(data: dict[str, Any]) -> ScanSummary:
+    """A result summary read back as every output reads it: one its payloads accept (built
+    once here), so a bad value is refused before anything shows or queues it; ValueError
+    naming the key."""
+    from silo_agent.analysis.summary import ScanSummary
+    from silo_agent.telemetry.payloads import check_summary
+
+    summary = ScanSummary.from_json(data)
+    check_summary(summary)
+    return summary
+
+
+def read_result(directory: Path) -> dict[str, Any] | None:
+    """The published result kept with a scan (result.json), as kept, once `checked_summary`
+    accepts it: the one reader of it for replay, report and `scans`. None when the scan has
+    none; ScanError naming the file and the problem when it is damaged."""
+    from silo_agent.storage.audit import RESULT, read_kept
+
+    path = directory / RESULT
+    data = read_kept(path)
+    if data is not None:
+        try:
+            checked_summary(data)
+        except ValueError as exc:
+            raise ScanError(f"{path}: {exc}") from None
+    return data
 
 
 def keep_result(
@@ -239,26 +288,21 @@ def process_directory(
     Raises ScanError for a bad directory, ConfigError for bad settings, ModelError for a bad
     detection model."""
     scan = read_scan(directory)
-    analysis = overridden(settings_of(scan), config, grid_step_m, method)
+    analysis = overridden(settings_of(scan, directory / MANIFEST), config, grid_step_m, method)
     result = analyse_with(scan, analysis, [], release_points=release_points)
     return scan, result, summary_of(result, scan, {})
 
 
 def replay(directory: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """(published, replayed) results of a cached scan, processed again exactly as it was
-    processed: its own analysis arguments and the previous piles that gave pile ids."""
-    from silo_agent.detect import Pile
-    from silo_agent.storage.audit import INPUTS, RESULT
+    processed: its own analysis arguments and the previous piles that gave pile ids. Raises
+    ScanError naming the file for a bad scan, a damaged result.json or inputs.json."""
+    from silo_agent.storage.audit import INPUTS, RESULT, read_kept
 
     scan = read_scan(directory)
-    try:
-        published = json.loads((directory / RESULT).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ScanError(f"{directory / RESULT}: the scan has no published result") from None
-    try:
-        inputs = json.loads((directory / INPUTS).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        inputs = {}
-    previous = [Pile.from_json(p) for p in inputs.get("previous_piles") or []]
-    result = analyse_with(scan, settings_of(scan), previous)
+    published = read_result(directory)
+    if published is None:
+        raise ScanError(f"{directory / RESULT}: the scan has no published result")
+    previous = piles_of(read_kept(directory / INPUTS) or {}, "previous_piles", directory / INPUTS)
+    result = analyse_with(scan, settings_of(scan, directory / MANIFEST), previous)
     return published, summary_of(result, scan, {}).to_json()

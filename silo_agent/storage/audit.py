@@ -18,7 +18,9 @@ import errno
 import hashlib
 import io
 import json
+import os
 import re
+import secrets
 import shutil
 import tarfile
 import tempfile
@@ -170,15 +172,12 @@ class AuditCache:
         `valid`: the newest valid one, a volume); ValueError saying why when there is none or
         the newest cannot be read."""
         for entry in reversed(self.entries()):
-            path = entry.path / RESULT
             try:
-                summary = json.loads(path.read_text(encoding="utf-8"))
-            except FileNotFoundError:
+                summary = read_kept(entry.path / RESULT)
+            except ScanError as exc:
+                raise ValueError(str(exc)) from None
+            if summary is None:
                 continue  # a scan that failed before a result: an older one may have one
-            except (OSError, ValueError, RecursionError) as exc:
-                raise ValueError(f"{path}: {exc}") from None
-            if not isinstance(summary, dict):
-                raise ValueError(f"{path}: not a JSON object")
             if valid and not (
                 summary.get("valid") is True and summary.get("volume_m3") is not None
             ):
@@ -261,11 +260,53 @@ class AuditCache:
     # ------------------------------------------------------------ export
 
     def export(self, scan_id: str, out: Path) -> Path:
-        """A .tar.gz of one scan directory, for a support ticket or another machine."""
+        """A .tar.gz of one scan directory, for a support ticket or another machine. Written
+        beside `out` and renamed into place, so a failed export (no such directory, a full
+        disk) leaves no half archive; OSError says why. An `out` that exists (the page's
+        private temporary file) keeps its mode; a new one gets the umask's."""
         path = self.find(scan_id)
-        with tarfile.open(out, "w:gz") as tar:
-            tar.add(path, arcname=scan_id)
+        if out.is_dir():  # refused before the archive is written, not at the rename
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(out))
+        existing = out.exists()
+        staging = out.with_name(f".{out.name}.{secrets.token_hex(4)}")
+        fd = os.open(staging, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if existing else 0o666)
+        with os.fdopen(fd, "wb") as handle:
+            try:
+                with tarfile.open(fileobj=handle, mode="w:gz") as tar:
+                    tar.add(path, arcname=scan_id)
+                handle.flush()
+                os.fsync(handle.fileno())
+                if existing:
+                    shutil.copymode(out, staging)
+                os.replace(staging, out)
+            except BaseException:
+                staging.unlink(missing_ok=True)
+                raise
         return out
+
+
+def read_kept(path: Path) -> dict[str, Any] | None:
+    """A JSON object kept next to a scan (result.json, inputs.json: `add_result`); None when
+    there is none, ScanError naming the file and what is wrong with it when it is damaged."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if not raw.strip():
+        raise ScanError(f"{path}: empty")
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ScanError(f"{path}: not UTF-8 text at byte offset {exc.start}") from None
+    except json.JSONDecodeError as exc:
+        raise ScanError(f"{path}: not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ScanError(f"{path}: JSON nested too deeply") from None
+    if not isinstance(data, dict):
+        raise ScanError(f"{path}: must be a JSON object, got {data!r:.40}")
+    return data
 
 
 def read_heightmap(directory: Path) -> HeightMap | None:

@@ -131,21 +131,20 @@ def camera_views(cameras: list[CameraCloud], hm: HeightMap | None) -> list[Camer
 def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
     """A scan directory as the page and the report show it: the kept result and height map
     when the agent kept them, else the scan processed now as `process` would (with `config`'s
-    settings if given). Raises ScanError for a bad directory."""
-    from silo_agent.service.scan_path import CONFIG_KEY
+    settings if given). Raises ScanError for a bad directory or a damaged kept result."""
+    from silo_agent.service.scan_path import config_snapshot, process_directory, read_result
 
     directory = Path(directory)
     scan = read_scan(directory)
-    summary = _read_json(directory / RESULT)
-    heightmap = read_heightmap(directory) if summary is not None else None
-    kept = summary is not None and config is None
-    if not kept:
-        from silo_agent.service.scan_path import process_directory
-
+    snapshot = config_snapshot(scan, str(directory / MANIFEST))
+    summary = read_result(directory) if config is None else None
+    kept = summary is not None
+    if summary is not None:
+        heightmap = read_heightmap(directory)
+    else:
         scan, result, processed = process_directory(directory, config)
         summary = processed.to_json()  # as result.json holds it
         heightmap = result.reconstruction.heightmap
-    assert summary is not None
     return ScanView(
         scan_id=scan.scan_id,
         captured_at=str(summary.get("captured_at") or scan.captured_at),
@@ -156,7 +155,7 @@ def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
         floor_z=float(scan.site.floor_z),
         cameras=camera_views(scan.cameras, heightmap),
         # a scan without a snapshot (simulated, or written by hand) still says its site
-        config=dict(scan.extra.get(CONFIG_KEY) or {})
+        config=dict(snapshot)
         or {"silo": scan.site.to_json(), "reconstruction": scan.reconstruction},
         kept=kept,
     )
