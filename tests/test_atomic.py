@@ -59,6 +59,24 @@ def test_config_rewrite_syncs_the_directory_and_keeps_the_mode(
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
+def test_config_rewrite_through_a_symlink_rewrites_its_target_and_keeps_the_link(
+    tmp_path: Path,
+) -> None:
+    """A config kept elsewhere and linked (/etc/silo-agent.toml -> a deployment's file): the
+    file it names takes the new extrinsics, the link stays a link."""
+    target = tmp_path / "deploy" / "silo.toml"
+    target.parent.mkdir()
+    target.write_text(CONFIG)
+    link = tmp_path / "silo.toml"
+    link.symlink_to(target)
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1, 0.2, 3.0]
+    backup = write_calibrated_config(link, {"cam": pose})
+    assert link.is_symlink() and link.resolve() == target
+    assert "[0, 1, 0, 0.2]" in target.read_text() and "# the only camera" in target.read_text()
+    assert backup.parent == target.parent and backup.read_text() == CONFIG
+
+
 def test_write_atomic_replaces_and_leaves_nothing_on_failure(tmp_path: Path) -> None:
     path = tmp_path / "state.json"
     write_atomic(path, b"one")

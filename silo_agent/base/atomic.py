@@ -8,7 +8,10 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 
 def fsync_directory(directory: Path) -> None:
@@ -20,13 +23,15 @@ def fsync_directory(directory: Path) -> None:
         os.close(fd)
 
 
-def write_atomic(path: Path, data: bytes, *, keep_mode: bool = False) -> None:
-    """Replace (or create) the file `path` with `data`. `keep_mode`: the new file keeps the
-    old one's permission bits (a config file an operator restricted)."""
+@contextmanager
+def atomic_writer(path: Path, *, keep_mode: bool = False) -> Iterator[BinaryIO]:
+    """A binary handle whose content replaces (or creates) the file `path` when the block
+    ends, and leaves no trace if it raises. `keep_mode`: the new file keeps the old one's
+    permission bits (a config file an operator restricted); a new file is the owner's (0600)."""
     fd, staging = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
+            yield handle
             handle.flush()
             os.fsync(handle.fileno())
         if keep_mode:
@@ -36,6 +41,12 @@ def write_atomic(path: Path, data: bytes, *, keep_mode: bool = False) -> None:
     except BaseException:
         Path(staging).unlink(missing_ok=True)
         raise
+
+
+def write_atomic(path: Path, data: bytes, *, keep_mode: bool = False) -> None:
+    """Replace (or create) the file `path` with `data` (`atomic_writer`)."""
+    with atomic_writer(path, keep_mode=keep_mode) as handle:
+        handle.write(data)
 
 
 def publish_directory(staging: Path, target: Path) -> None:

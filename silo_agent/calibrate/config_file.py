@@ -81,8 +81,8 @@ def rewrite_config_text(text: str, poses: Mapping[str, np.ndarray]) -> str:
 
 def write_calibrated_config(path: Path, poses: Mapping[str, np.ndarray]) -> Path:
     """Rewrite the config file at `path` with the new extrinsics; keep the old one as a backup
-    (`<name>.<UTC time>.bak`). The new text is validated before anything is written, and is
-    written atomically. Returns the backup's path."""
+    (`<name>.<UTC time>.bak`, beside the file a symlink names). The new text is validated
+    before anything is written, and is written atomically. Returns the backup's path."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -103,7 +103,8 @@ def write_calibrated_config(path: Path, poses: Mapping[str, np.ndarray]) -> Path
                     f"{path}: the rewritten extrinsic of {camera.serial} does "
                     "not read back; nothing written"
                 )
-    backup = path.with_name(f"{path.name}.{datetime.now(UTC):%Y%m%dT%H%M%S%fZ}.bak")
-    shutil.copy2(path, backup)
-    write_atomic(path, new.encode("utf-8"), keep_mode=True)
+    target = path.resolve()  # a symlinked config: the file it names is rewritten, the link kept
+    backup = target.with_name(f"{target.name}.{datetime.now(UTC):%Y%m%dT%H%M%S%fZ}.bak")
+    shutil.copy2(target, backup)
+    write_atomic(target, new.encode("utf-8"), keep_mode=True)
     return backup

@@ -20,7 +20,6 @@ import io
 import json
 import os
 import re
-import secrets
 import shutil
 import tarfile
 import tempfile
@@ -35,7 +34,7 @@ import numpy as np
 import structlog
 
 from silo_agent import __version__
-from silo_agent.base.atomic import publish_directory, write_atomic
+from silo_agent.base.atomic import atomic_writer, publish_directory, write_atomic
 from silo_agent.config import AuditConfig
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.scan import MANIFEST, Scan, ScanError, manifest_of, write_ply
@@ -260,28 +259,18 @@ class AuditCache:
     # ------------------------------------------------------------ export
 
     def export(self, scan_id: str, out: Path) -> Path:
-        """A .tar.gz of one scan directory, for a support ticket or another machine. Written
-        beside `out` and renamed into place, so a failed export (no such directory, a full
-        disk) leaves no half archive; OSError says why. An `out` that exists (the page's
-        private temporary file) keeps its mode; a new one gets the umask's."""
+        """A .tar.gz of one scan directory, for a support ticket or another machine; written
+        whole or not at all (`atomic_writer`: a missing directory or a full disk leaves no half
+        archive), OSError saying why. An `out` that exists (the page's private temporary file)
+        keeps its mode."""
         path = self.find(scan_id)
         if out.is_dir():  # refused before the archive is written, not at the rename
             raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(out))
-        existing = out.exists()
-        staging = out.with_name(f".{out.name}.{secrets.token_hex(4)}")
-        fd = os.open(staging, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if existing else 0o666)
-        with os.fdopen(fd, "wb") as handle:
-            try:
-                with tarfile.open(fileobj=handle, mode="w:gz") as tar:
-                    tar.add(path, arcname=scan_id)
-                handle.flush()
-                os.fsync(handle.fileno())
-                if existing:
-                    shutil.copymode(out, staging)
-                os.replace(staging, out)
-            except BaseException:
-                staging.unlink(missing_ok=True)
-                raise
+        with (
+            atomic_writer(out, keep_mode=out.exists()) as handle,
+            tarfile.open(fileobj=handle, mode="w:gz") as tar,
+        ):
+            tar.add(path, arcname=scan_id)
         return out
 
 
