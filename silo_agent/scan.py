@@ -205,10 +205,11 @@ class _Open(BaseModel):
 
 
 class _Intrinsics(_Open):
-    width: int
-    height: int
-    fx: float
-    fy: float
+    # an image and a focal length: a zero (a camera that failed to report them) divided by
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
     ppx: float
     ppy: float
 

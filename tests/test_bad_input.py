@@ -10,6 +10,7 @@ import pytest
 from tests.support.cli import run_cli
 
 MANIFEST = "scan.json"
+INTRINSICS = {"width": 424, "height": 240, "fx": 300.0, "fy": 300.0, "ppx": 212.0, "ppy": 120.0}
 
 
 def _edit_manifest(scan_dir: Path, change) -> None:
@@ -72,6 +73,14 @@ def _delete(path: list):
             ["site.region", "self-intersecting"],
         ),
         (_set(["cameras"], []), ["cameras"]),
+        (
+            _set(["cameras", 0, "intrinsics"], {**INTRINSICS, "fx": 0}),
+            ["intrinsics.fx", "greater than 0"],
+        ),
+        (
+            _set(["cameras", 0, "intrinsics"], {**INTRINSICS, "width": -5}),
+            ["intrinsics.width", "greater than 0"],
+        ),
     ],
 )
 def test_bad_manifest_is_named(scan_dir: Path, change, fragments) -> None:
