@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from silo_agent.base.d455 import MAX_HEIGHT_PX, MAX_WIDTH_PX
 from silo_agent.config import ReconstructionConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.reconstruct import reconstruct
@@ -354,7 +355,7 @@ def measured_cloudcompare(ply: Path, step: float, floor_z: float) -> tuple[Measu
 # 20 m bin (a 720-gon of the circle's area) is 20.0001 m across, 2001 x 2001 cells at 1 cm,
 # just past the 4 M-cell limit (base/limits.py)
 BIG_BINS = {12.0: (12.0, 8.0, 2.0, 4.0), 20.0: (19.99, 12.0, 3.5, 6.5)}
-FULL_RESOLUTION = (1280, 720)
+FULL_RESOLUTION = (MAX_WIDTH_PX, MAX_HEIGHT_PX)  # the D455's largest depth stream
 
 
 def big_bin(diameter_m: float) -> Scene:

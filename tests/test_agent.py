@@ -480,7 +480,7 @@ def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
     assert degraded["valid"] is True and degraded["degraded"] is True
     assert degraded["cameras"]["used"] == ["sim-A2", "sim-A6"]
     (failed,) = degraded["cameras"]["failed"]
-    assert failed["serial"] == "broken" and "needs view" in failed["error"]
+    assert failed["serial"] == "broken" and "no valid depth pixels" in failed["error"]
     col.wait_topic(f"{BASE}/alarm")
     (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
     assert (alarm["type"], alarm["state"]) == ("camera", "raised") and "broken" in alarm["message"]

@@ -83,6 +83,7 @@ region = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 [[cameras]]
 serial = "cam-a"
 source = "sim"
+view = "A1"
 
 [mqtt]
 host = "127.0.0.1"

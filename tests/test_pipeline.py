@@ -67,7 +67,7 @@ def test_a_scan_publishes_the_summary_it_keeps(tmp_path: Path) -> None:
 
 
 def test_no_camera_is_a_failed_scan_with_its_reason_and_the_camera_alarm(tmp_path: Path) -> None:
-    config = _config(tmp_path, cameras=(("sim-X", None),))  # no view: the camera fails
+    config = _config(tmp_path, cameras=(("sim-X", None),))  # looks at the sky: it fails
     pipeline, publisher = _pipeline(config)
     outcome = _run(pipeline)
     assert outcome.outcome == "failed"

@@ -315,7 +315,7 @@ def test_process_uses_the_scan_settings_then_config_then_flags(tmp_path, cone_sc
     config.write_text(
         '[silo]\nid = "s"\nregion = [[-2.5, -2.5], [2.5, -2.5], [2.5, 2.5], [-2.5, 2.5]]\n'
         "floor_z = 0.0\nceiling_z = 2.0\n[reconstruction]\ngrid_step_m = 0.04\n"
-        '[[cameras]]\nserial = "cam0"\nsource = "sim"\n'
+        '[[cameras]]\nserial = "cam0"\nsource = "sim"\nview = "A1"\n'
     )
     out = run_cli("process", str(directory), "--json", "--config", str(config))
     assert json.loads(out.stdout)["grid_step_m"] == 0.04

@@ -112,13 +112,6 @@ def test_sim_camera_renders_from_a_configured_extrinsic_and_reports_it() -> None
     assert on_pile.sum() > 10_000 and np.sqrt(np.mean(gap**2)) < 0.01
 
 
-def test_sim_camera_without_a_pose_is_a_capture_failure_not_a_crash() -> None:
-    result = capture_all(parse_config(_config({}), "test"))
-    assert result.clouds == []
-    (failure,) = result.failures
-    assert failure.serial == "cam" and "view" in failure.error
-
-
 def test_a_layout_that_buries_the_cameras_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:

@@ -5,6 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
+# A depth image's size: at most the D455's largest depth stream, 1280x720 (a config's width of
+# 1,000,000 passed and the simulator's `scan` never ended); at least 16: simulated cameras may
+# render below any D455 stream (212x120 keeps a test's sim run fast)
+MIN_IMAGE_PX = 16
+MAX_WIDTH_PX = 1280
+MAX_HEIGHT_PX = 720
+
 BASELINE_M = 0.095  # stereo baseline
 SUBPIXEL_PX = 0.08  # disparity RMS of block matching on an ideal target
 # share of the noise variance common to pixels a few apart (the blobs a block matcher makes):

@@ -166,6 +166,10 @@ def resolution(text: str) -> tuple[int, int]:
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError("want WIDTHxHEIGHT, e.g. 1280x720") from None
-    if not (16 <= width <= 1280 and 16 <= height <= 800):
-        raise argparse.ArgumentTypeError("want 16-1280 x 16-800 pixels")
+    from silo_agent.base.d455 import MAX_HEIGHT_PX, MAX_WIDTH_PX, MIN_IMAGE_PX
+
+    if not (MIN_IMAGE_PX <= width <= MAX_WIDTH_PX and MIN_IMAGE_PX <= height <= MAX_HEIGHT_PX):
+        raise argparse.ArgumentTypeError(
+            f"want {MIN_IMAGE_PX}-{MAX_WIDTH_PX} x {MIN_IMAGE_PX}-{MAX_HEIGHT_PX} pixels"
+        )
     return width, height

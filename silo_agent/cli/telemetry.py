@@ -93,7 +93,7 @@ def _heightmap(path: Path, scan_id: str) -> HeightMap:
 
 
 def publish(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    config = load_config(args.config, service=True)  # its outbox, TLS files, password
     try:  # every file read and checked before anything is queued
         summary = _read(args.result, checked_summary)
         event = _read(args.alarm, _event) if args.alarm else None
@@ -115,7 +115,7 @@ def publish(args: argparse.Namespace) -> int:
 
 
 def flush(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    config = load_config(args.config, service=True)
     return _send(Telemetry.from_config(config), args.timeout, args.linger)
 
 

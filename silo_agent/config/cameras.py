@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     Field,
     field_validator,
     model_validator,
@@ -17,10 +18,12 @@ from silo_agent.base.choices import (
     DEFAULT_LAYOUT,
     DEFAULT_MAX_DEPTH_M,
     DEFAULT_MIN_DEPTH_M,
+    SCENE_NAMES,
     VIEW_NAMES,
     Grain,
     Layout,
 )
+from silo_agent.base.d455 import MAX_HEIGHT_PX, MAX_WIDTH_PX, MIN_IMAGE_PX
 from silo_agent.base.limits import MAX_DURATION_S
 from silo_agent.config.base import Matrix4, Strict
 from silo_agent.grid.geometry import (
@@ -37,8 +40,12 @@ class CameraConfig(Strict):
     rotate_deg: tuple[float, float, float] | None = None
     translate_m: tuple[float, float, float] | None = None
     view: str | None = Field(default=None, description="sim only: a named layout position")
-    width: int = 848
-    height: int = 480
+    width: int = Field(
+        default=848, ge=MIN_IMAGE_PX, le=MAX_WIDTH_PX, description="depth image width, pixels"
+    )
+    height: int = Field(
+        default=480, ge=MIN_IMAGE_PX, le=MAX_HEIGHT_PX, description="depth image height, pixels"
+    )
     fps: int = 30
     frames: int = Field(default=10, ge=1, description="depth frames aggregated per capture")
     warmup_frames: int = Field(default=30, ge=0)
@@ -96,8 +103,14 @@ class CameraConfig(Strict):
             raise ValueError("give either extrinsic or rotate_deg/translate_m, not both")
         if self.source == "playback" and self.playback is None:
             raise ValueError("source = 'playback' needs playback = FILE")
-        if self.source != "sim" and not has_matrix and not has_euler:
-            raise ValueError("needs extrinsic (4x4) or rotate_deg + translate_m")
+        if not has_matrix and not has_euler:
+            if self.source != "sim":
+                raise ValueError("needs extrinsic (4x4) or rotate_deg + translate_m")
+            if self.view is None:  # it could not be placed: every capture of it failed
+                raise ValueError(
+                    "a sim camera needs view = 'A1'..'A8', extrinsic (4x4) "
+                    "or rotate_deg + translate_m"
+                )
         if self.max_depth_m <= self.min_depth_m:
             raise ValueError(
                 f"max_depth_m ({self.max_depth_m}) must be above min_depth_m ({self.min_depth_m})"
@@ -120,9 +133,18 @@ class CameraConfig(Strict):
         return transform_from_euler(self.rotate_deg or (0, 0, 0), self.translate_m or (0, 0, 0))
 
 
+def _known_scene(scene: str) -> str:
+    if scene not in SCENE_NAMES:
+        raise ValueError(f"unknown scene {scene!r}, expected one of {', '.join(SCENE_NAMES)}")
+    return scene
+
+
+SceneName = Annotated[str, AfterValidator(_known_scene)]
+
+
 class SimulationConfig(Strict):
-    scene: str = "cone"
-    sequence: list[str] = Field(
+    scene: SceneName = "cone"
+    sequence: list[SceneName] = Field(
         default=[], description="scenes taken scan after scan (the last one stays); overrides scene"
     )
     vary_noise: bool = Field(
@@ -135,7 +157,7 @@ class SimulationConfig(Strict):
         description="seconds each camera's capture takes (a D455's warm-up and frames: ~1.5 s)",
     )
     grain: Grain = DEFAULT_GRAIN
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, description="same seed, same scans (numpy takes >= 0)")
     layout: Layout = DEFAULT_LAYOUT
     calib_error_deg: float = Field(default=0.0, ge=0)
     calib_error_m: float = Field(default=0.0, ge=0)

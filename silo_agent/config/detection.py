@@ -15,7 +15,10 @@ from silo_agent.config.base import Strict
 class OnnxDetectionConfig(Strict):
     """A site's Ultralytics YOLO model exported to ONNX (paper 2.2); none ships with silo-agent."""
 
-    model: Path = Field(description="the .onnx file of `yolo export format=onnx`")
+    model: Path = Field(
+        description="the .onnx file of `yolo export format=onnx`; it must exist when the config "
+        "is loaded (a relative path: from the working directory)"
+    )
     confidence: float = Field(default=0.5, gt=0, lt=1, description="paper 2.2 threshold")
     iou: float = Field(default=0.45, gt=0, le=1, description="NMS overlap that drops a box")
     pile_classes: list[str] = Field(default=["pile"], description="class names that are piles")

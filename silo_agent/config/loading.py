@@ -4,6 +4,7 @@ and the environment checks `run` and `check-config` make."""
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 import tomllib
 from pathlib import Path
@@ -13,8 +14,11 @@ from pydantic import (
 )
 
 from silo_agent.config.base import ConfigError, describe_validation_error
+from silo_agent.config.mqtt import MqttTlsConfig, read_secret
 from silo_agent.config.root import Config
 from silo_agent.config.web import token_problem
+
+SQLITE_HEADER = b"SQLite format 3\x00"  # the first 16 bytes of every SQLite 3 database
 
 
 def _toml_value(value: object) -> object:
@@ -41,10 +45,13 @@ def _writable_directory_problem(directory: Path) -> str | None:
     """Why the agent could not create and write `directory`, or None. The nearest existing
     ancestor must be a directory the agent can create entries in (tried, and undone)."""
     existing = directory
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        return f"{existing} is not a directory"
+    try:
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        if not existing.is_dir():
+            return f"{existing} is not a directory"
+    except OSError as exc:  # a name the file system cannot hold (ENAMETOOLONG)
+        return f"cannot use {directory}: {exc.strerror or exc}"
     try:
         tempfile.TemporaryDirectory(prefix=".silo-agent-check.", dir=existing).cleanup()
     except OSError as exc:
@@ -52,12 +59,31 @@ def _writable_directory_problem(directory: Path) -> str | None:
     return None
 
 
-def _readable_file_problem(path: Path) -> str | None:
-    if not path.exists():
-        return f"{path} does not exist"
-    if not path.is_file():  # checked before opening: a FIFO would block the open
-        return f"{path} is not a regular file"
+def _outbox_problem(outbox: Path) -> str | None:
+    """Why the agent could not keep its outbox at `outbox`, or None."""
+    problem = _writable_directory_problem(outbox.parent)
+    if problem:
+        return problem
     try:
+        if not outbox.exists():
+            return None
+        if not outbox.is_file():
+            return f"{outbox} exists and is not a regular file"
+        with open(outbox, "rb") as handle:
+            head = handle.read(len(SQLITE_HEADER))
+    except OSError as exc:
+        return f"cannot use {outbox}: {exc.strerror or exc}"
+    if head and head != SQLITE_HEADER:  # the outbox would move it aside as a corrupt database
+        return f"{outbox} exists and is no SQLite database (not an outbox): name a new file"
+    return None
+
+
+def _readable_file_problem(path: Path) -> str | None:
+    try:
+        if not path.exists():
+            return f"{path} does not exist"
+        if not path.is_file():  # checked before opening: a FIFO would block the open
+            return f"{path} is not a regular file"
         with open(path, "rb"):
             pass
     except OSError as exc:
@@ -65,20 +91,70 @@ def _readable_file_problem(path: Path) -> str | None:
     return None
 
 
+def _input_problems(config: Config) -> list[str]:
+    """`key: problem` for the files every command reads as the config says: the ONNX model,
+    which `run` and `scan` would otherwise fail on only after capturing. A relative path is
+    taken from the working directory, as the model is then opened."""
+    onnx = config.detection.onnx
+    problem = None if onnx is None else _readable_file_problem(onnx.model)
+    if onnx is None or problem is None:
+        return []
+    if not onnx.model.is_absolute():
+        problem += f" (a relative path is taken from the working directory, {Path.cwd()})"
+    return [f"detection.onnx.model: {problem}"]
+
+
+def _tls_problems(tls: MqttTlsConfig) -> list[str]:
+    """`key: problem` for TLS files that exist but that the broker connection's SSL context
+    would refuse: loaded into one the way paho's `tls_set` loads them, so that a bad file is a
+    config error naming its key, not an SSL traceback on every reconnect."""
+    import ssl
+
+    problems: list[str] = []
+    for key, path in (("ca_file", tls.ca_file), ("cert_file", tls.cert_file)):
+        if path is None:
+            continue
+        try:  # any PEM certificate loads as a trust anchor, a client's too
+            ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_verify_locations(cafile=path)
+        except ssl.SSLError:
+            problems.append(f"mqtt.tls.{key}: {path} holds no PEM certificate")
+    if problems or tls.cert_file is None or tls.key_file is None:
+        return problems
+    if tls.key_password_file is None and tls.key_password_env is not None:
+        if tls.key_password_env not in os.environ:  # the service's environment: checked at start
+            return []
+        hint = f"or the passphrase in ${tls.key_password_env} does not decrypt it"
+    elif tls.key_password_file is not None:
+        hint = "or the passphrase in key_password_file does not decrypt it"
+    else:  # an encrypted key then fails here, rather than OpenSSL asking on a tty
+        hint = "or it is encrypted and neither key_password_file nor key_password_env is given"
+    try:  # as the agent reads it
+        password = read_secret(tls.key_password_file, tls.key_password_env, "mqtt.tls.key_password")
+    except ConfigError as exc:
+        return [str(exc)]
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(
+            tls.cert_file, tls.key_file, password or ""
+        )
+    except ssl.SSLError as exc:
+        if exc.reason == "KEY_VALUES_MISMATCH":
+            problem = f"{tls.key_file} is not the private key of cert_file {tls.cert_file}"
+        else:
+            problem = f"{tls.key_file} is not a PEM private key, {hint}"
+        problems.append(f"mqtt.tls.key_file: {problem}")
+    return problems
+
+
 def environment_problems(config: Config) -> list[str]:
     """`key: problem` for what the config points at and the agent could not use: directories
     it writes, files it reads. Checked at start and by check-config, not on every parse."""
     problems = []
-    for key, directory in (
-        ("audit.directory", config.audit.directory),
-        ("mqtt.outbox_path", config.mqtt.outbox_path.parent),
+    for key, problem in (
+        ("audit.directory", _writable_directory_problem(config.audit.directory)),
+        ("mqtt.outbox_path", _outbox_problem(config.mqtt.outbox_path)),
     ):
-        problem = _writable_directory_problem(Path(directory))
         if problem:
             problems.append(f"{key}: {problem}")
-    outbox = config.mqtt.outbox_path
-    if outbox.exists() and not outbox.is_file():
-        problems.append(f"mqtt.outbox_path: {outbox} exists and is not a regular file")
     files = {"mqtt.password_file": config.mqtt.password_file}
     if config.mqtt.tls is not None:
         tls = config.mqtt.tls
@@ -96,6 +172,8 @@ def environment_problems(config: Config) -> list[str]:
         problem = _readable_file_problem(path) if path is not None else None
         if problem:
             problems.append(f"{key}: {problem}")
+    if config.mqtt.tls is not None and not problems:
+        problems += _tls_problems(config.mqtt.tls)
     if config.web.enabled and config.web.token_file is not None and not problems:
         problem = token_problem(config.web.token_file)
         if problem:
@@ -121,8 +199,9 @@ def config_warnings(config: Config) -> list[str]:
 
 
 def load_config(path: str | Path, *, service: bool = False) -> Config:
-    """Read and validate a TOML config file. `service`: also what the daemon will write and
-    read (`environment_problems`), for `run`, its reloads and `check-config`; offline commands
+    """Read and validate a TOML config file and the files every command reads as it says
+    (`_input_problems`). `service`: also what the daemon will write and read
+    (`environment_problems`), for `run`, its reloads and `check-config`; offline commands
     such as `process --config` need none of it."""
     path = Path(path)
     try:
@@ -141,7 +220,7 @@ def load_config(path: str | Path, *, service: bool = False) -> Config:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     config = parse_config(data, str(path))
-    problems = environment_problems(config) if service else []
+    problems = _input_problems(config) + (environment_problems(config) if service else [])
     if problems:
         raise ConfigError("\n".join(f"{path}: {problem}" for problem in problems))
     return config

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -12,7 +13,7 @@ from pydantic import (
 )
 
 from silo_agent.base.limits import MAX_DURATION_S, MAX_TOPIC_PREFIX_BYTES
-from silo_agent.config.base import HostName, Strict
+from silo_agent.config.base import ConfigError, HostName, Strict
 
 
 class MqttTlsConfig(Strict):
@@ -106,3 +107,19 @@ class MqttConfig(Strict):
         if self.reconnect_max_s < self.reconnect_min_s:
             raise ValueError("reconnect_max_s must be >= reconnect_min_s")
         return self
+
+
+def read_secret(file: Path | None, env: str | None, key: str) -> str | None:
+    """A password from a file (first line) or an environment variable, never from the TOML;
+    ConfigError naming `key`_file or `key`_env when it cannot be read."""
+    if file is not None:
+        try:
+            return file.read_text(encoding="utf-8").splitlines()[0].strip()
+        except (OSError, IndexError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{key}_file: cannot read a password from {file}: {exc}") from None
+    if env is not None:
+        value = os.environ.get(env)
+        if value is None:
+            raise ConfigError(f"{key}_env: environment variable {env} is not set")
+        return value
+    return None

@@ -12,6 +12,7 @@ from pydantic import (
     model_validator,
 )
 
+from silo_agent.base.limits import MAX_COORDINATE_M
 from silo_agent.config.base import SAFE_ID, Point2, Strict
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.geometry import (
@@ -85,8 +86,9 @@ class SiloConfig(Strict):
         description="integration polygon, silo frame; default: the bin's wall",
     )
     bin: BinConfig | None = Field(default=None, description="the bin's wall, eave and bottom")
-    floor_z: float = 0.0
-    ceiling_z: float | None = None
+    # the bound a scan's manifest holds them to: a scan written from the config must read back
+    floor_z: float = Field(default=0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
+    ceiling_z: float | None = Field(default=None, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)
     base: Literal["floor", "boundary"] = "floor"
     bulk_density_t_m3: float | None = Field(default=None, gt=0)
     timezone: str = Field(default="UTC", description="IANA zone of schedule.cron")
@@ -98,7 +100,7 @@ class SiloConfig(Strict):
 
         try:
             ZoneInfo(zone)
-        except (ZoneInfoNotFoundError, ValueError):
+        except (ZoneInfoNotFoundError, ValueError, OSError):  # OSError: a name too long for a file
             raise ValueError(f"unknown time zone {zone!r} (want an IANA name)") from None
         return zone
 

@@ -14,14 +14,12 @@ so failed attempts reuse it and the sessions a host sees are numbered one apart.
 
 from __future__ import annotations
 
-import os
 import random
 import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Protocol
 
 import paho.mqtt.client as mqtt
@@ -29,7 +27,8 @@ import structlog
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.properties import Properties
 
-from silo_agent.config import ConfigError, MqttConfig
+from silo_agent.config import MqttConfig
+from silo_agent.config.mqtt import read_secret
 from silo_agent.telemetry import sparkplug
 from silo_agent.telemetry.link import (
     JSON_LINK,
@@ -47,21 +46,6 @@ log = structlog.get_logger(__name__)
 
 LOOP_TIMEOUT_S = 0.01
 Subscriptions = Mapping[str, list[tuple[str, int]]]  # link name -> (topic filter, QoS)
-
-
-def read_secret(file: Path | None, env: str | None, key: str) -> str | None:
-    """A password from a file (first line) or an environment variable, never from the TOML."""
-    if file is not None:
-        try:
-            return file.read_text(encoding="utf-8").splitlines()[0].strip()
-        except (OSError, IndexError) as exc:
-            raise ConfigError(f"{key}_file: cannot read a password from {file}: {exc}") from None
-    if env is not None:
-        value = os.environ.get(env)
-        if value is None:
-            raise ConfigError(f"{key}_env: environment variable {env} is not set")
-        return value
-    return None
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,9 @@ import time
 from pathlib import Path
 
 SILO = "silo-d"
+# a sim camera 4 m up looking straight at the sky (its optical axis along the silo's +z): it
+# measures no point, so its capture fails ("no valid depth pixels") as a real camera's would
+SKY_EXTRINSIC = "[[1, 0, 0, 0], [0, 1, 0, -2.5], [0, 0, 1, 4.0], [0, 0, 0, 1]]"
 BASE = f"silo/{SILO}"
 
 
@@ -78,12 +81,12 @@ def write_config(
         "grid_step_m = 0.05",
         "",
     ]
-    for serial, view in cameras:  # a sim camera without a view cannot be placed: it fails
+    for serial, view in cameras:  # without a view: a sim camera that fails, seeing nothing
         lines += [
             "[[cameras]]",
             f'serial = "{serial}"',
             'source = "sim"',
-            *([f'view = "{view}"'] if view else []),
+            f'view = "{view}"' if view else f"extrinsic = {SKY_EXTRINSIC}",
             "width = 424",
             "height = 240",
             "",
