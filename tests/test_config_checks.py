@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -318,20 +317,15 @@ def test_a_name_too_long_for_a_file_is_a_config_error_naming_the_key(
     refused(path, key)
 
 
-def test_an_outbox_path_naming_a_file_that_is_no_outbox_is_refused(tmp_path: Path) -> None:
-    """The outbox moves a corrupt database aside and starts afresh: pointed at a file that is
-    no SQLite database at all (here the config itself) `flush` renamed that file and put a
-    database in its place. Such a file is a config error; a real outbox, or none yet, loads."""
+def test_an_outbox_path_naming_the_config_itself_is_refused(tmp_path: Path) -> None:
+    """The outbox moves a corrupt database aside and starts afresh (a crash must not stop the
+    agent): pointed at the config file itself, `flush` renamed the config and put a database in
+    its place. Refused by every command that opens the outbox, the config left as it was."""
     config = tmp_path / "agent.toml"
     demo(tmp_path, (f'outbox_path = "{tmp_path / "ob.sqlite"}"', f'outbox_path = "{config}"'))
     text = config.read_text(encoding="utf-8")
-    refused(config, "mqtt.outbox_path", str(config), "no SQLite database")
+    refused(config, "mqtt.outbox_path", "names this config file itself")
     result = run_cli("flush", "--config", str(config), "--timeout", "0")
-    assert result.returncode == EX_CONFIG and "no SQLite database" in result.stderr
-    assert config.read_text(encoding="utf-8") == text  # the config was not moved aside
+    assert result.returncode == EX_CONFIG and "names this config file itself" in result.stderr
+    assert config.read_text(encoding="utf-8") == text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["agent.toml"]
-
-    good = demo(tmp_path)
-    load_config(good, service=True)  # no outbox yet
-    sqlite3.connect(tmp_path / "ob.sqlite").execute("CREATE TABLE t (x)").connection.close()
-    load_config(good, service=True)  # an SQLite database: the agent's own

@@ -18,8 +18,6 @@ from silo_agent.config.mqtt import MqttTlsConfig, read_secret
 from silo_agent.config.root import Config
 from silo_agent.config.web import token_problem
 
-SQLITE_HEADER = b"SQLite format 3\x00"  # the first 16 bytes of every SQLite 3 database
-
 
 def _toml_value(value: object) -> object:
     """A TOML date or time in the JSON handed to the strict validator: an object, which no
@@ -65,16 +63,10 @@ def _outbox_problem(outbox: Path) -> str | None:
     if problem:
         return problem
     try:
-        if not outbox.exists():
-            return None
-        if not outbox.is_file():
+        if outbox.exists() and not outbox.is_file():
             return f"{outbox} exists and is not a regular file"
-        with open(outbox, "rb") as handle:
-            head = handle.read(len(SQLITE_HEADER))
     except OSError as exc:
         return f"cannot use {outbox}: {exc.strerror or exc}"
-    if head and head != SQLITE_HEADER:  # the outbox would move it aside as a corrupt database
-        return f"{outbox} exists and is no SQLite database (not an outbox): name a new file"
     return None
 
 
@@ -221,6 +213,9 @@ def load_config(path: str | Path, *, service: bool = False) -> Config:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     config = parse_config(data, str(path))
     problems = _input_problems(config) + (environment_problems(config) if service else [])
+    if service and config.mqtt.outbox_path.resolve() == path.resolve():
+        # a corrupt outbox is moved aside and the agent starts afresh: this would move the config
+        problems.append("mqtt.outbox_path: names this config file itself")
     if problems:
         raise ConfigError("\n".join(f"{path}: {problem}" for problem in problems))
     return config
