@@ -287,3 +287,21 @@ def test_an_output_path_through_a_file_is_one_line(tmp_path: Path, command: str)
     named = target.parent if command == "simulate" else target  # the scan's parent is made
     _assert_clear_failure(result, str(named), "cannot write there")
     assert not (tmp_path / "scan").exists()
+
+
+@pytest.mark.parametrize("kind", ["directory", "fifo", "device", "huge"])
+def test_a_config_path_that_is_no_config_file_is_one_line(tmp_path: Path, kind: str) -> None:
+    """check-config on what is no config file: a directory (a traceback), a FIFO (blocked
+    waiting for a writer), /dev/zero (read for ever), a file past the size a scan's manifest
+    holds. Exit 78 and one line, at once."""
+    import os
+
+    path = {"directory": tmp_path, "device": Path("/dev/zero")}.get(kind, tmp_path / "c.toml")
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "huge":
+        path.write_bytes(b"# " + b"x" * (17 * 1024 * 1024) + b"\n")
+    result = run_cli("check-config", str(path))
+    assert result.returncode == 78
+    fragment = "larger than" if kind == "huge" else "not a regular file"
+    _assert_clear_failure(result, str(path), fragment)

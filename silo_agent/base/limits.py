@@ -9,6 +9,7 @@ MAX_CLOUD_POINTS = 10_000_000  # one camera's cloud (a D455 frame has 0.4 millio
 MAX_SCAN_POINTS = 16_000_000  # all cameras of one scan together: 8 cameras of 2 million
 MAX_PLY_HEADER_BYTES = 64 * 1024  # a PLY header longer than this is not a point cloud
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024  # scan.json (it carries the config snapshot)
+MAX_CONFIG_BYTES = MAX_MANIFEST_BYTES  # a config file: it must fit in a scan's manifest
 MAX_COORDINATE_M = 100_000.0  # |translation| of an extrinsic: far beyond any silo, within float32
 MAX_DURATION_S = 366 * 24 * 3600.0  # any configured interval or timeout: at most a year
 MAX_TOPIC_PREFIX_BYTES = 1024  # topic_prefix, discovery_prefix: MQTT allows 65,535 per topic
