@@ -9,7 +9,6 @@ import io
 import json
 import os
 import shutil
-import stat
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -30,6 +29,7 @@ from pydantic import (
 
 from silo_agent.base.atomic import publish_directory
 from silo_agent.base.choices import DEFAULT_MAX_DEPTH_M, DEFAULT_MIN_DEPTH_M
+from silo_agent.base.files import FileProblem, open_regular, read_regular
 from silo_agent.base.limits import (
     MAX_CLOUD_POINTS,
     MAX_COORDINATE_M,
@@ -359,19 +359,34 @@ _PLY_TYPES = {
 
 @contextmanager
 def _open_regular(path: Path) -> Iterator[BinaryIO]:
-    """A binary handle on `path` if it is a regular file (through symlinks); a FIFO would
-    block the read and a device such as /dev/zero never ends."""
+    """`files.open_regular`, its problem a ScanError naming `path`."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    except OSError as exc:
-        raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    mode = os.fstat(fd).st_mode
-    if not stat.S_ISREG(mode):  # checked before fdopen, which refuses a directory unnamed
-        os.close(fd)
-        kind = " (a directory)" if stat.S_ISDIR(mode) else ""
-        raise ScanError(f"{path}: not a regular file{kind}")
-    with os.fdopen(fd, "rb") as handle:
-        yield handle
+        with open_regular(path) as handle:
+            yield handle
+    except FileProblem as exc:
+        raise ScanError(f"{path}: {exc}") from None
+
+
+def json_object(path: Path, limit: int) -> dict[str, Any]:
+    """The JSON object the regular file `path` holds (at most `limit` bytes): a manifest, a
+    kept result; ScanError naming the file and what is wrong with it."""
+    try:
+        raw = read_regular(path, limit)
+    except FileProblem as exc:
+        raise ScanError(f"{path}: {exc}") from None
+    if not raw.strip():
+        raise ScanError(f"{path}: empty")
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ScanError(f"{path}: not UTF-8 text at byte offset {exc.start}") from None
+    except json.JSONDecodeError as exc:
+        raise ScanError(f"{path}: not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ScanError(f"{path}: JSON nested too deeply") from None
+    if not isinstance(data, dict):
+        raise ScanError(f"{path}: must be a JSON object, got {data!r:.40}")
+    return data
 
 
 def _ply_header(path: Path, header: list[str]) -> tuple[int, list[tuple[str, str]]]:
@@ -510,23 +525,7 @@ def read_manifest(directory: Path) -> dict[str, Any]:
         raise ScanError(f"{directory}: not a directory")
     if not path.exists():
         raise ScanError(f"{path}: missing (not a silo-scan/1 directory)")
-    with _open_regular(path) as handle:
-        try:
-            raw = handle.read(MAX_MANIFEST_BYTES + 1)
-        except OSError as exc:
-            raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if len(raw) > MAX_MANIFEST_BYTES:
-        raise ScanError(f"{path}: larger than the limit of {MAX_MANIFEST_BYTES // 2**20} MiB")
-    try:
-        data = json.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise ScanError(f"{path}: not UTF-8 text at byte offset {exc.start}") from None
-    except json.JSONDecodeError as exc:
-        raise ScanError(f"{path}: not valid JSON: {exc}") from None
-    except RecursionError:
-        raise ScanError(f"{path}: JSON nested too deeply") from None
-    if not isinstance(data, dict):
-        raise ScanError(f"{path}: must be a JSON object")
+    data = json_object(path, MAX_MANIFEST_BYTES)
     try:
         _Manifest.model_validate(data)
     except ValidationError as exc:

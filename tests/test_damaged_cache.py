@@ -109,7 +109,7 @@ def test_replay_names_a_damaged_inputs_json(
         (lambda p: p.write_text("junk"), "not valid JSON"),
         (lambda p: p.write_text("[]"), "must be a JSON object"),
         (lambda p: p.write_text('"x"'), "must be a JSON object"),
-        (replace_with_directory, "Is a directory"),
+        (replace_with_directory, "not a regular file (a directory)"),
     ],
     ids=["empty", "junk", "list", "string", "directory"],
 )

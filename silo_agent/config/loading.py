@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import stat
 import tempfile
 import tomllib
 from pathlib import Path
@@ -14,6 +13,7 @@ from pydantic import (
     ValidationError,
 )
 
+from silo_agent.base.files import FileProblem, read_regular
 from silo_agent.base.limits import MAX_CONFIG_BYTES
 from silo_agent.config.base import ConfigError, describe_validation_error
 from silo_agent.config.mqtt import MqttTlsConfig, read_secret
@@ -192,33 +192,16 @@ def config_warnings(config: Config) -> list[str]:
     return warnings
 
 
-def _config_bytes(path: Path) -> bytes:
-    """The config file's bytes; ConfigError for what is no config file: not a regular file
-    (/dev/zero was read for ever, a FIFO blocked), or larger than MAX_CONFIG_BYTES."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO: no wait for a writer
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(os.fstat(fd).st_mode):  # before fdopen, which refuses a directory
-        os.close(fd)
-        raise ConfigError(f"{path}: not a regular file")
-    with os.fdopen(fd, "rb") as handle:
-        try:
-            raw = handle.read(MAX_CONFIG_BYTES + 1)
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES} bytes: not a config file")
-    return raw
-
-
 def load_config(path: str | Path, *, service: bool = False) -> Config:
     """Read and validate a TOML config file and the files every command reads as it says
     (`_input_problems`). `service`: also what the daemon will write and read
     (`environment_problems`), for `run`, its reloads and `check-config`; offline commands
     such as `process --config` need none of it."""
     path = Path(path)
-    raw = _config_bytes(path)
+    try:  # only a regular file: a FIFO blocked, /dev/zero was read for ever
+        raw = read_regular(path, MAX_CONFIG_BYTES)
+    except FileProblem as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

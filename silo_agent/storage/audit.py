@@ -35,9 +35,10 @@ import structlog
 
 from silo_agent import __version__
 from silo_agent.base.atomic import atomic_writer, publish_directory, write_atomic
+from silo_agent.base.limits import MAX_MANIFEST_BYTES
 from silo_agent.config import AuditConfig
 from silo_agent.grid.heightmap import HeightMap
-from silo_agent.scan import MANIFEST, Scan, ScanError, manifest_of, write_ply
+from silo_agent.scan import MANIFEST, Scan, ScanError, json_object, manifest_of, write_ply
 
 log = structlog.get_logger(__name__)
 
@@ -277,25 +278,9 @@ class AuditCache:
 def read_kept(path: Path) -> dict[str, Any] | None:
     """A JSON object kept next to a scan (result.json, inputs.json: `add_result`); None when
     there is none, ScanError naming the file and what is wrong with it when it is damaged."""
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
+    if not path.exists() and not path.is_symlink():
         return None
-    except OSError as exc:
-        raise ScanError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if not raw.strip():
-        raise ScanError(f"{path}: empty")
-    try:
-        data = json.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise ScanError(f"{path}: not UTF-8 text at byte offset {exc.start}") from None
-    except json.JSONDecodeError as exc:
-        raise ScanError(f"{path}: not valid JSON: {exc}") from None
-    except RecursionError:
-        raise ScanError(f"{path}: JSON nested too deeply") from None
-    if not isinstance(data, dict):
-        raise ScanError(f"{path}: must be a JSON object, got {data!r:.40}")
-    return data
+    return json_object(path, MAX_MANIFEST_BYTES)
 
 
 def read_heightmap(directory: Path) -> HeightMap | None:

@@ -1,0 +1,45 @@
+"""Reading a file a user named, whatever it turns out to be: only a regular file is read (a
+FIFO would block, a device such as /dev/zero never ends, a directory is no file), and never
+more than a bound. The callers say which file and raise their own error (ScanError,
+ConfigError) with the problem given here."""
+
+from __future__ import annotations
+
+import os
+import stat
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import BinaryIO
+
+
+class FileProblem(ValueError):
+    """Why a file could not be read, without its path (the caller names it)."""
+
+
+@contextmanager
+def open_regular(path: Path) -> Iterator[BinaryIO]:
+    """A binary handle on `path` if it is a regular file (through symlinks); FileProblem if
+    it cannot be opened or is no regular file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO: no wait for a writer
+    except OSError as exc:
+        raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):  # checked before fdopen, which refuses a directory unnamed
+        os.close(fd)
+        raise FileProblem("not a regular file" + (" (a directory)" if stat.S_ISDIR(mode) else ""))
+    with os.fdopen(fd, "rb") as handle:
+        yield handle
+
+
+def read_regular(path: Path, limit: int) -> bytes:
+    """The bytes of the regular file `path`, at most `limit` of them; FileProblem otherwise."""
+    with open_regular(path) as handle:
+        try:
+            raw = handle.read(limit + 1)
+        except OSError as exc:
+            raise FileProblem(f"cannot read: {exc.strerror or exc}") from None
+    if len(raw) > limit:
+        raise FileProblem(f"larger than the limit of {limit:,} bytes")
+    return raw
