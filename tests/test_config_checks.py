@@ -7,13 +7,16 @@ anything starts, and a good value in its place still loads."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
-from silo_agent.config import ConfigError, load_config, parse_config
+from silo_agent.base.choices import LAYOUTS, SCENE_LAYOUTS, SCENE_NAMES
+from silo_agent.config import ConfigError, SimulationConfig, load_config, parse_config
 from silo_agent.reconstruct import site_from_config
 from silo_agent.scan import CameraCloud, Scan, ScanError, Site, read_scan, write_scan
 from tests.support.cli import run_cli
@@ -158,7 +161,7 @@ def test_bad_simulation_settings_are_refused(tmp_path: Path, case: str) -> None:
     "edits",
     [
         [('scene = "cone"', 'scene = "bay-cone"')],
-        [('scene = "cone"', 'scene = "cone"\nsequence = ["cone", "bin-18"]')],
+        [('scene = "cone"', 'scene = "cone"\nsequence = ["cone", "hopper-low"]')],
         [("seed = 0", "seed = 7")],
         [('view = "A1"', "rotate_deg = [0, 0, 0]\ntranslate_m = [0, 0, 2]")],
     ],
@@ -329,3 +332,76 @@ def test_an_outbox_path_naming_the_config_itself_is_refused(tmp_path: Path) -> N
     assert result.returncode == EX_CONFIG and "names this config file itself" in result.stderr
     assert config.read_text(encoding="utf-8") == text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["agent.toml"]
+
+
+# ---------------------------------------------------------------- a layout that fits no camera
+# `layout = "eave"` on the cone (no round bin) or "paper" on a scene deeper than 1 m (its cameras
+# under the grain) passed `check-config`, then every capture failed.
+
+
+@pytest.mark.parametrize(
+    ("edits", "key", "message"),
+    [
+        (
+            [('layout = "paper"', 'layout = "eave"')],
+            "simulation.layout",
+            "layout 'eave' does not fit scene 'cone' (it fits paper, wall)",
+        ),
+        (
+            [('scene = "cone"', 'scene = "full"')],
+            "simulation.layout",
+            "layout 'paper' does not fit scene 'full' (it fits wall)",
+        ),
+        (
+            [('scene = "cone"', 'scene = "cone"\nsequence = ["cone", "piles", "bin-18"]')],
+            "simulation.sequence.2",
+            "layout 'paper' does not fit scene 'bin-18' (it fits wall, eave)",
+        ),
+        (
+            [
+                ('scene = "cone"', 'scene = "bin-heap"\nsequence = ["bin-heap", "ridge"]'),
+                ('layout = "paper"', 'layout = "eave"'),
+            ],
+            "simulation.sequence.1",
+            "layout 'eave' does not fit scene 'ridge' (it fits paper, wall)",
+        ),
+    ],
+    ids=["eave on the cone", "paper in full", "paper in a sequence", "eave in a sequence"],
+)
+def test_a_layout_that_does_not_fit_the_scene_is_refused_naming_the_key(
+    tmp_path: Path, edits, key: str, message: str
+) -> None:
+    path = demo(tmp_path, *edits)
+    refused(path, key, message)
+    result = run_cli("check-config", str(path))
+    assert result.returncode == EX_CONFIG and f"{path}: {key}: {message}" in result.stderr
+
+
+@pytest.mark.parametrize(
+    "edits",
+    [
+        [('scene = "cone"', 'scene = "hopper-low"')],  # all three fit it
+        [('scene = "cone"', 'scene = "bin-18"'), ('layout = "paper"', 'layout = "eave"')],
+        # the sequence overrides the scene: the cone, which no eave fits, is not taken
+        [
+            ('scene = "cone"', 'scene = "cone"\nsequence = ["bin-heap", "hopper-low"]'),
+            ('layout = "paper"', 'layout = "eave"'),
+        ],
+        [
+            ('scene = "cone"', f"sequence = {json.dumps(list(SCENE_NAMES))}"),
+            ('layout = "paper"', 'layout = "wall"'),  # it fits every scene
+        ],
+    ],
+)
+def test_a_layout_that_fits_every_scene_taken_still_loads(tmp_path: Path, edits) -> None:
+    load_config(demo(tmp_path, *edits), service=True)
+
+
+def test_the_config_takes_exactly_the_layouts_the_table_gives_each_scene() -> None:
+    for scene, layout in itertools.product(SCENE_NAMES, LAYOUTS):
+        settings = {"scene": scene, "layout": layout}
+        if layout in SCENE_LAYOUTS[scene]:
+            assert SimulationConfig.model_validate(settings).layout == layout
+        else:
+            with pytest.raises(ValidationError, match="does not fit"):
+                SimulationConfig.model_validate(settings)

@@ -10,7 +10,7 @@ import pytest
 
 from silo_agent.capture import capture_all
 from silo_agent.cli import build_parser, main
-from silo_agent.config import load_config, parse_config
+from silo_agent.config import ConfigError, load_config, parse_config
 from silo_agent.scan import read_scan
 from silo_agent.sim import SCENES, make_scene, simulate, view_pose
 
@@ -129,6 +129,10 @@ def test_a_layout_that_buries_the_cameras_is_refused(
     assert main(argv) == 2
     assert "buried" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
-    config = parse_config(_config({"view": "A1"}, scene="full", layout="paper"), "test")
-    (failure,) = capture_all(config).failures
+    with pytest.raises(ConfigError, match=r"simulation\.layout: layout 'paper' does not fit"):
+        parse_config(_config({"view": "A1"}, scene="full", layout="paper"), "test")
+    # past the config check (a config built without it), a capture still fails, saying why
+    config = parse_config(_config({"view": "A1"}, scene="full", layout="wall"), "test")
+    paper = config.simulation.model_copy(update={"layout": "paper"})
+    (failure,) = capture_all(config.model_copy(update={"simulation": paper})).failures
     assert "buried" in failure.error

@@ -1,16 +1,21 @@
 """Camera poses: the paper's Appendix A matrices, the A1-A8 and wall layouts seeing what they
-should, calibration-error injection, and determinism of `simulate` for a seed."""
+should, the table of the layouts that fit each scene, calibration-error injection, and
+determinism of `simulate` for a seed."""
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 import pytest
 
+from silo_agent.base.choices import GRAINS, LAYOUTS, SCENE_LAYOUTS, SCENE_NAMES
 from silo_agent.grid.geometry import transform_from_euler
 from silo_agent.scan import Scan
 from silo_agent.sim import SimRig, make_scene, simulate, view_pose
 from silo_agent.sim.camera import NoiseModel
-from silo_agent.sim.layouts import VIEWS
+from silo_agent.sim.layouts import VIEWS, placement
+from silo_agent.sim.scenes import Scene
 
 # Appendix A as printed: the text lost its minus signs, so magnitudes are compared.
 PAPER = {
@@ -153,6 +158,40 @@ def test_wall_layout_looks_down_and_sees_beams_and_ceiling_to_crop() -> None:
         p = camera.points_in_silo()
         assert (p[:, 2] > scene.params["beam_bottom"]).sum() > 1000  # beams / ceiling in view
         assert len(gap) > 50_000 and np.percentile(gap, 99.9) < 0.005  # crop leaves grain only
+
+
+def places(scene: Scene, layout: str) -> int:
+    """How many of A1-A8 the geometry places in `scene` with `layout`."""
+    placed = 0
+    for view in VIEWS:
+        try:
+            placement(scene, view, layout)
+        except ValueError:
+            continue
+        placed += 1
+    return placed
+
+
+@pytest.mark.parametrize("name", SCENE_NAMES)
+def test_the_layouts_the_table_gives_a_scene_are_those_the_simulator_renders(name: str) -> None:
+    """The config refuses a layout by `SCENE_LAYOUTS` alone: a layout it lists must place all
+    of A1-A8 (for every grain) and render points from each, one it leaves out must place none
+    (the geometry's own judgement, without the table), and the simulator refuses that one naming
+    the layouts that fit. 64x48 pixels: only whether a camera sees the scene matters here."""
+    fits = SCENE_LAYOUTS[name]
+    scene = make_scene(name)
+    assert scene.layout in fits  # the scene's default layout
+    for grain_name, layout in itertools.product(GRAINS, LAYOUTS):
+        placed = places(make_scene(name, grain_name), layout)
+        assert placed == (len(VIEWS) if layout in fits else 0), (grain_name, layout, placed)
+    rig = SimRig(scene)
+    for layout in LAYOUTS:
+        if layout in fits:
+            scan = simulate(scene, list(VIEWS), layout=layout, rig=rig, resolution=(64, 48))
+            assert all(len(c.points) > 0 for c in scan.cameras), layout
+        else:
+            with pytest.raises(ValueError, match=rf"\(it fits {', '.join(fits)}\): "):
+                simulate(scene, ["A1"], layout=layout, rig=rig, resolution=(64, 48))
 
 
 def test_calibration_error_moves_the_rendering_not_the_written_extrinsic() -> None:

@@ -31,20 +31,34 @@ DEFAULT_MAX_DEPTH_M = 10.0
 # A8, counter-clockwise from the middle of the -y side); a sim camera's `view` names one.
 VIEW_NAMES: tuple[str, ...] = ("A1", "A2", "A3", "A4", "A5", "A6", "A7", "A8")
 
-# The simulator's scene library (sim/scenes.py builds each); the bin scenes are round bins.
-SCENE_NAMES: tuple[str, ...] = (
-    "cone",
-    "piles",
-    "ridge",
-    "crater",
-    "full",
-    "flat",
-    "empty",
-    "bay-cone",
-    "bin-heap",
-    "bin-crater",
-    "bin-side",
-    "hopper-heap",
-    "hopper-low",
-    "bin-18",
-)
+# The simulator's scene library (sim/scenes.py builds each; the bin scenes are round bins), each
+# with the camera layouts that place all of A1-A8 in it, whatever the grain: a paper camera
+# stands 1 m over the floor, under the grain of the deeper scenes, and the eave layout needs a
+# round bin. The config refuses any other layout before a capture fails on it, the simulator
+# refuses it too, and tests/test_sim_layouts.py renders every scene and layout against this.
+SCENE_LAYOUTS: dict[str, tuple[Layout, ...]] = {
+    "cone": ("paper", "wall"),
+    "piles": ("paper", "wall"),
+    "ridge": ("paper", "wall"),
+    "crater": ("wall",),
+    "full": ("wall",),
+    "flat": ("wall",),
+    "empty": ("paper", "wall"),
+    "bay-cone": ("paper", "wall"),
+    "bin-heap": ("wall", "eave"),
+    "bin-crater": ("wall", "eave"),
+    "bin-side": ("wall", "eave"),
+    "hopper-heap": ("wall", "eave"),
+    "hopper-low": ("paper", "wall", "eave"),
+    "bin-18": ("wall", "eave"),
+}
+SCENE_NAMES: tuple[str, ...] = tuple(SCENE_LAYOUTS)
+
+
+def layout_misfit(scene: str, layout: str) -> str | None:
+    """Why `layout` cannot place the cameras in the library scene `scene`, or None when it can.
+    A scene outside the library (the moving robot's bay) is left to the simulator's geometry."""
+    fits = SCENE_LAYOUTS.get(scene)
+    if fits is None or layout in fits:
+        return None
+    return f"layout {layout!r} does not fit scene {scene!r} (it fits {', '.join(fits)})"

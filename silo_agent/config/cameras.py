@@ -12,6 +12,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic_core import PydanticCustomError
 
 from silo_agent.base.choices import (
     DEFAULT_GRAIN,
@@ -22,6 +23,7 @@ from silo_agent.base.choices import (
     VIEW_NAMES,
     Grain,
     Layout,
+    layout_misfit,
 )
 from silo_agent.base.d455 import MAX_HEIGHT_PX, MAX_WIDTH_PX, MIN_IMAGE_PX
 from silo_agent.base.limits import MAX_DURATION_S
@@ -161,3 +163,14 @@ class SimulationConfig(Strict):
     layout: Layout = DEFAULT_LAYOUT
     calib_error_deg: float = Field(default=0.0, ge=0)
     calib_error_m: float = Field(default=0.0, ge=0)
+
+    @model_validator(mode="after")
+    def _layout_fits(self) -> SimulationConfig:
+        """A layout that cannot place the cameras in a scene passed `check-config` and failed
+        every capture of that scene; refused here, naming the layout or the sequence entry."""
+        scenes = [(f"simulation.sequence.{k}", name) for k, name in enumerate(self.sequence)]
+        for key, scene in scenes or [("simulation.layout", self.scene)]:
+            misfit = layout_misfit(scene, self.layout)
+            if misfit is not None:
+                raise PydanticCustomError("config_key", "{misfit}", {"key": key, "misfit": misfit})
+        return self

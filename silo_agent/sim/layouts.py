@@ -11,10 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from silo_agent.base.choices import VIEW_NAMES
+from silo_agent.base.choices import LAYOUTS, VIEW_NAMES, layout_misfit
 from silo_agent.sim.scenes import Scene
 
-LAYOUTS = ("paper", "wall", "eave")
 VIEWS: dict[str, tuple[int, int]] = dict(
     zip(
         VIEW_NAMES,
@@ -55,10 +54,31 @@ def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def view_pose(scene: Scene, view: str, layout: str | None = None) -> np.ndarray:
-    """Nominal camera -> silo transform of a named view (`layout` defaults to the scene's)."""
+    """Nominal camera -> silo transform of a named view (`layout` defaults to the scene's).
+
+    A layout that `base.choices.SCENE_LAYOUTS` does not list for the scene is refused, as the
+    config check refuses it from the same table; the message adds the geometry's reason.
+    """
     if view not in VIEWS:
         raise ValueError(f"unknown view {view!r}; known: {', '.join(VIEWS)}")
     layout = layout or scene.layout
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
+    misfit = layout_misfit(scene.name, layout)
+    try:
+        position, target = placement(scene, view, layout)
+    except ValueError as exc:
+        misfit = misfit or f"layout {layout!r} does not fit scene {scene.name!r}"
+        raise ValueError(f"{misfit}: {exc}") from None
+    if misfit is not None:  # the table rules, for the config check to say the same
+        raise ValueError(misfit)
+    return look_at(position, target)
+
+
+def placement(scene: Scene, view: str, layout: str) -> tuple[np.ndarray, np.ndarray]:
+    """Where the geometry alone, without the table, puts a view's camera: its position and aim
+    point, or a ValueError saying why there is no place for it (tests check the table by it).
+    `layout` is one of LAYOUTS (`view_pose` checks)."""
     offset = np.asarray(VIEWS[view], dtype=float)
     target = np.asarray(scene.target, dtype=float)
     if layout == "paper":
@@ -67,23 +87,21 @@ def view_pose(scene: Scene, view: str, layout: str | None = None) -> np.ndarray:
     elif layout == "wall":
         xy = offset * (scene.wall_half_m - WALL_INSET_M)
         z = scene.wall_camera_z
-    elif layout == "eave":
+    else:  # eave
         if scene.bin is None:
-            raise ValueError(f"the 'eave' layout needs a round bin; {scene.name!r} is not one")
+            raise ValueError("the eave layout needs a round bin")
         centre, radius = np.asarray(scene.bin.centre), scene.bin.radius_m
         direction = offset / np.linalg.norm(offset)
         xy = centre + direction * (radius - EAVE_INSET_M)
         z = scene.wall_camera_z
         target = np.append(centre - direction * EAVE_AIM * radius, target[2])
-    else:
-        raise ValueError(f"unknown layout {layout!r}; known: {', '.join(LAYOUTS)}")
     surface = float(scene.height(np.array(xy[0]), np.array(xy[1])))
     if z <= surface + 0.1:
         raise ValueError(
-            f"view {view} of the {layout!r} layout would be buried in the "
-            f"{scene.name!r} scene's grain (try layout 'wall')"
+            f"view {view} would be buried in the grain (camera {z:.2f} m high, the grain "
+            f"{surface:.2f} m there)"
         )
-    return look_at(np.array([xy[0], xy[1], z]), target)
+    return np.array([xy[0], xy[1], z]), target
 
 
 def axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
