@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from silo_agent.base.limits import MAX_COMMAND_BYTES
 from silo_agent.config import ConfigError, LiveConfig, parse_config
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
@@ -45,7 +46,7 @@ def test_requests_within_the_configured_limits():
         (b'{"on": true, "rate_hz": 0}', "rate_hz:"),
         (b"[1]", "invalid live request"),
         (b"\xff", "invalid live request"),
-        (b'{"on": true, "x": ' + b"1" * 5000 + b"}", "payload too large"),
+        (b'{"on": true, "x": ' + b"1" * MAX_COMMAND_BYTES + b"}", "payload too large"),
     ],
 )
 def test_bad_requests_name_the_problem(payload: bytes, problem: str):

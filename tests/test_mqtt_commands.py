@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from silo_agent.telemetry.payloads import MAX_COMMAND_BYTES
+from silo_agent.base.limits import MAX_COMMAND_BYTES
 from tests.support.mqtt import BASE, validate_json
 
 REPLIES = "fuzz/replies"
@@ -113,6 +113,7 @@ def test_named_problems_and_the_agent_survives(agent):
         b"\xff\xfe": "not UTF-8",
         json.dumps({"request_id": "x" * (MAX_COMMAND_BYTES + 1)}).encode(): "payload too large",
         b"{}": "request_id: Field required",
+        b"[" * 5000 + b"]" * 5000: "nested too deeply",  # it had broken the MQTT loop
     }
     for raw, problem in cases.items():
         reply = ask(col, raw)

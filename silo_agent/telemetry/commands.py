@@ -17,13 +17,13 @@ import paho.mqtt.client as mqtt
 import structlog
 from pydantic import ValidationError
 
+from silo_agent.base.limits import MAX_COMMAND_BYTES
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.link import JSON_LINK, KIND_JSON, SPARKPLUG_LINK, Link
 from silo_agent.telemetry.live_command import LiveCommand, parse_live_request
 from silo_agent.telemetry.outbox import Outbox
 from silo_agent.telemetry.payloads import (
-    MAX_COMMAND_BYTES,
     CommandReplyPayload,
     Envelope,
     ReplyStatus,
@@ -75,6 +75,8 @@ def parse_scan_request(payload: bytes) -> tuple[ScanRequest | None, str | None, 
         return None, None, f"payload is not UTF-8: {exc.reason} at byte {exc.start}"
     except ValueError as exc:
         return None, None, f"invalid JSON: {exc}"
+    except RecursionError:  # json's decoder recurses per level: [[[[...]]]] of a few thousand
+        return None, None, "invalid JSON: nested too deeply"
     if not isinstance(body, dict):
         return None, None, f"payload must be a JSON object, got {type(body).__name__}"
     rid = body.get("request_id")
@@ -186,7 +188,7 @@ class Commands:
         try:
             state = json.loads(payload)
             online, stamp = bool(state["online"]), int(state["timestamp"])
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, RecursionError):
             log.warning("ignoring a malformed Sparkplug STATE message")
             return
         self.session.host_state(link, online, stamp)

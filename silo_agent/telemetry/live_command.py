@@ -7,10 +7,8 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from silo_agent.base.limits import MAX_DURATION_S, MIN_LIVE_RATE_HZ
+from silo_agent.base.limits import MAX_COMMAND_BYTES, MAX_DURATION_S, MIN_LIVE_RATE_HZ
 from silo_agent.config import LiveConfig
-
-MAX_COMMAND_BYTES = 4096
 
 
 class LiveRequest(BaseModel):

@@ -20,7 +20,6 @@ from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.summary import ScanSummary
 
 SAFE_NAME = r"^[A-Za-z0-9_-]+$"
-MAX_COMMAND_BYTES = 65536
 
 
 class _Model(BaseModel):
