@@ -149,8 +149,9 @@ def test_live_session_rate_duration_stop_and_limits(tmp_path: Path, broker, list
         assert too_fast["status"] == "error" and "live.rate_hz" in too_fast["error"]
         listener.command(b'{"on": true, "duration_s": 61}')
         assert "live.max_duration_s" in listener.replies(2)[1]["error"]
-        listener.command(b'{"on": true, "speed": 1}')
-        assert "speed" in listener.replies(3)[2]["error"]
+        listener.command(b'{"on": true, "speed": 1, "request_id": "bad-1"}')
+        unknown = listener.replies(3)[2]  # refused as it was parsed: still names the request
+        assert "speed" in unknown["error"] and unknown["request_id"] == "bad-1"
         listener.command(b'{"on": false}')
         assert "no live session" in listener.replies(4)[3]["error"]
 

@@ -24,7 +24,7 @@ json_values = st.recursive(
     max_leaves=10,
 )
 requests = st.one_of(
-    st.binary(max_size=200),
+    st.binary(min_size=1, max_size=200),  # empty: a retained command cleared, no command
     json_values.map(lambda v: json.dumps(v).encode()),
     st.dictionaries(
         st.sampled_from(["request_id", "requestId", "extra", "priority"]),
@@ -122,3 +122,18 @@ def test_named_problems_and_the_agent_survives(agent):
     assert ask(col, b'{"request_id": "ok-1"}')["accepted"]
     assert accepted == ["ok-1"]
     assert tel._thread.is_alive()
+
+
+def test_an_empty_message_clears_a_retained_command_and_gets_no_reply(agent):
+    """`mosquitto_pub -r -n` on the command topic (how the docs say to clear a retained
+    command) reaches the agent as an empty live message: no command, so no error reply; the
+    next request is answered as usual, and only it."""
+    tel, col, accepted = agent
+    props = Properties(PacketTypes.PUBLISH)
+    props.ResponseTopic = REPLIES
+    props.CorrelationData = b"the-empty-one"
+    col.publish(f"{BASE}/cmd/scan", b"", props)
+    assert ask(col, b'{"request_id": "after-empty"}')["accepted"]
+    assert [m.properties.CorrelationData for m in col.on(REPLIES)] != []
+    assert all(m.properties.CorrelationData != b"the-empty-one" for m in col.on(REPLIES))
+    assert accepted == ["after-empty"] and tel._thread.is_alive()

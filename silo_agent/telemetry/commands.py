@@ -17,7 +17,7 @@ import paho.mqtt.client as mqtt
 import structlog
 from pydantic import ValidationError
 
-from silo_agent.base.limits import MAX_COMMAND_BYTES
+from silo_agent.base.limits import MAX_COMMAND_BYTES, MAX_REQUEST_ID_CHARS
 from silo_agent.config import MqttConfig
 from silo_agent.telemetry import homeassistant, sparkplug
 from silo_agent.telemetry.link import JSON_LINK, KIND_JSON, SPARKPLUG_LINK, Link
@@ -64,6 +64,19 @@ def reply_topic_problem(topic: str, reserved: Iterable[str], allowed: str) -> st
     return None
 
 
+def readable_request_id(payload: bytes) -> str | None:
+    """The `request_id` of a command body that did not validate, if it can be read (a JSON
+    object with a string id of 1-128 characters): a refusal names the request it answers."""
+    if len(payload) > MAX_COMMAND_BYTES:
+        return None
+    try:
+        body = json.loads(payload.decode("utf-8"))
+    except (ValueError, RecursionError):
+        return None
+    rid = body.get("request_id") if isinstance(body, dict) else None
+    return rid if isinstance(rid, str) and 0 < len(rid) <= MAX_REQUEST_ID_CHARS else None
+
+
 def parse_scan_request(payload: bytes) -> tuple[ScanRequest | None, str | None, str | None]:
     """(request, its request_id as far as it could be read, error) of a `P/cmd/scan` body:
     the request_id lets even a refusal name the request it answers."""
@@ -80,7 +93,7 @@ def parse_scan_request(payload: bytes) -> tuple[ScanRequest | None, str | None, 
     if not isinstance(body, dict):
         return None, None, f"payload must be a JSON object, got {type(body).__name__}"
     rid = body.get("request_id")
-    request_id = rid if isinstance(rid, str) and len(rid) <= 128 else None
+    request_id = rid if isinstance(rid, str) and 0 < len(rid) <= MAX_REQUEST_ID_CHARS else None
     try:
         return ScanRequest.model_validate(body), request_id, None
     except ValidationError as exc:
@@ -163,13 +176,18 @@ class Commands:
         """One incoming message, to the handler of its topic."""
         ha = self.cfg.homeassistant
         primary_host = self.cfg.sparkplug.primary_host_id
-        if msg.topic in (f"{self.base}/cmd/scan", f"{self.base}/cmd/live") and msg.retain:
+        commands = (f"{self.base}/cmd/scan", f"{self.base}/cmd/live")
+        if msg.topic in commands and msg.retain:
             # the broker replays a retained command at every subscribe: it would act at every
             # start; the live delivery (retain flag clear) was already answered
             log.warning(
                 "ignoring a retained command; clear it with an empty retained message",
                 topic=msg.topic,
             )
+        elif msg.topic in commands and not msg.payload:
+            # an empty message is how a retained command is cleared (as the warning above says):
+            # its live delivery is no command, and an error reply would only confuse
+            log.info("ignoring an empty command message (a retained one cleared)", topic=msg.topic)
         elif msg.topic == f"{self.base}/cmd/scan":
             self._scan_command(msg)
         elif msg.topic == f"{self.base}/cmd/live":
@@ -249,6 +267,8 @@ class Commands:
                 raise CommandRejected("this agent does not run live sessions")
             session_id = self._live_callback(LiveCommand(request, reply_topic, correlation))
         except (ValueError, CommandRejected) as exc:
+            if request_id is None:  # refused as it was parsed: the id as far as it reads
+                request_id = readable_request_id(bytes(msg.payload))
             log.warning("live request refused", request_id=request_id, error=str(exc))
             self._answered(reply_topic, correlation, request_id, str(exc) or "rejected")
             return

@@ -7,7 +7,12 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from silo_agent.base.limits import MAX_COMMAND_BYTES, MAX_DURATION_S, MIN_LIVE_RATE_HZ
+from silo_agent.base.limits import (
+    MAX_COMMAND_BYTES,
+    MAX_DURATION_S,
+    MAX_REQUEST_ID_CHARS,
+    MIN_LIVE_RATE_HZ,
+)
 from silo_agent.config import LiveConfig
 
 
@@ -18,7 +23,7 @@ class LiveRequest(BaseModel):
     on: bool
     rate_hz: Annotated[float, Field(ge=MIN_LIVE_RATE_HZ)] | None = None
     duration_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)] | None = None
-    request_id: Annotated[str, Field(min_length=1, max_length=128)] | None = None
+    request_id: Annotated[str, Field(min_length=1, max_length=MAX_REQUEST_ID_CHARS)] | None = None
 
 
 def parse_live_request(payload: bytes | bytearray) -> LiveRequest:

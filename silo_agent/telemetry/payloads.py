@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from silo_agent.analysis.alarm_types import AlarmEvent
 from silo_agent.analysis.summary import ScanSummary
+from silo_agent.base.limits import MAX_REQUEST_ID_CHARS
 
 SAFE_NAME = r"^[A-Za-z0-9_-]+$"
 
@@ -206,7 +207,7 @@ class ScanRequest(_Model):
     """`P/cmd/scan` request body; unknown keys are rejected so typos get an answer."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
-    request_id: Annotated[str, Field(min_length=1, max_length=128)]
+    request_id: Annotated[str, Field(min_length=1, max_length=MAX_REQUEST_ID_CHARS)]
 
 
 PAYLOADS: dict[str, type[_Payload]] = {
