@@ -412,3 +412,48 @@ def test_a_web_thread_that_ends_is_restarted(tmp_path: Path, broker, collector_f
     finally:
         agent.stop()
         main.join(30)
+
+
+@pytest.mark.parametrize(
+    ("path", "location"),
+    [
+        ("/", "./"),
+        ("/history", "./history"),
+        ("/a/https:evil.example", "./https:evil.example"),  # was "https:evil.example": off-site
+        ("/javascript:alert(1)", "./javascript:alert(1)"),
+    ],
+)
+def test_the_token_login_redirects_only_within_the_page(path: str, location: str) -> None:
+    """`?token=` sets the cookie and redirects to the page without it: always a relative path
+    on this site, whatever the requested path's last segment looks like."""
+    import asyncio
+
+    from silo_agent.web.server import _Token
+
+    async def app(scope, receive, send) -> None:  # never reached: the token is in the query
+        raise AssertionError("the login request went past the token check")
+
+    sent: list[dict] = []
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": b"", "more_body": False}
+
+    scope = {
+        "type": "http",
+        "method": "GET",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"token=s3cret&range=7d",
+        "headers": [],
+        "scheme": "http",
+        "server": ("127.0.0.1", 8464),
+        "root_path": "",
+    }
+    asyncio.run(_Token(app, "s3cret")(scope, receive, send))
+    start = sent[0]
+    assert start["status"] == 303
+    headers = dict(start["headers"])
+    assert headers[b"location"].decode() == f"{location}?range=7d"

@@ -208,3 +208,23 @@ def test_the_latest_scan_is_drawn_before_anyone_asks(tmp_path: Path, cone_scan_2
         assert drawn(scan_id).startswith(b"\x89PNG")
     finally:
         server.stop()
+
+
+def test_a_damaged_newest_result_is_listed_without_one_and_the_older_one_is_latest(
+    tmp_path: Path, cone_scan_2: Scan, analysed
+):
+    """A kept result.json with a NaN volume (hand-edited, damaged) had made the scan list a
+    500 (NaN is no JSON) and left the page without a latest scan. Read as every output reads a
+    result (`read_result`), it is no result: the scan is listed without one, the scan before it
+    is the latest, and the whole list serialises."""
+    cache, ids = cache_with_scans(tmp_path / "scans", cone_scan_2, analysed)
+    newest = tmp_path / "scans" / ids[2] / "result.json"
+    newest.write_text(json.dumps({**json.loads(newest.read_text()), "volume_m3": float("nan")}))
+    archive = Archive(cache)
+    records = {r.scan_id: r for r in archive.records()}
+    assert records[ids[2]].has_result is False and records[ids[2]].volume_m3 is None
+    assert records[ids[1]].has_result is True
+    assert archive.latest() is not None and archive.latest().scan_id == ids[1]
+    json.dumps([r.volume_m3 for r in archive.records()], allow_nan=False)
+    with pytest.raises(ScanNotFound):
+        archive.summary(ids[2])

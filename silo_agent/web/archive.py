@@ -9,7 +9,6 @@ files and kept for the few most recent scans asked for.
 
 from __future__ import annotations
 
-import json
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -161,12 +160,19 @@ def load_scan_view(directory: Path, config: Config | None = None) -> ScanView:
     )
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
+def _kept_result(directory: Path) -> dict[str, Any] | None:
+    """The result kept with a scan as every output reads it (`read_result`: checked as its
+    payloads are; a NaN volume had made the scan list a 500); None without one, or damaged
+    (logged, naming the file: the page lists the scan without a result)."""
+    from silo_agent.service.scan_path import read_result
+
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
+        return read_result(directory)
+    except ScanError as exc:
+        import structlog
+
+        structlog.get_logger(__name__).warning("damaged scan result", error=str(exc))
         return None
-    return data if isinstance(data, dict) else None
 
 
 class Archive:
@@ -178,6 +184,7 @@ class Archive:
         self._names: set[str] | None = None
         self._records: dict[str, ScanRecord] = {}
         self._views: OrderedDict[str, ScanView] = OrderedDict()
+        self._damaged: set[str] = set()  # scans whose kept result did not read
 
     def records(self) -> list[ScanRecord]:
         """This silo's cached scans, oldest first. The manifests are read again only when the
@@ -193,15 +200,16 @@ class Archive:
                 }
                 self._names = names
             for scan_id, record in self._records.items():
-                if not record.has_result and (self.cache.directory / scan_id / RESULT).is_file():
-                    self._records[scan_id] = self._record(
-                        self.cache.directory / scan_id, record.captured_at
-                    )
+                kept = self.cache.directory / scan_id / RESULT
+                if not record.has_result and scan_id not in self._damaged and kept.is_file():
+                    self._records[scan_id] = again = self._record(kept.parent, record.captured_at)
+                    if not again.has_result:  # read once, logged once: not at every poll
+                        self._damaged.add(scan_id)
             return list(self._records.values())
 
     @staticmethod
     def _record(path: Path, captured_at: datetime) -> ScanRecord:
-        summary = _read_json(path / RESULT)
+        summary = _kept_result(path)
         if summary is None:
             return ScanRecord(path.name, captured_at, None, None, False, False, False)
         return ScanRecord(
@@ -225,7 +233,7 @@ class Archive:
         return next((r for r in reversed(self.records()) if r.has_result), None)
 
     def summary(self, scan_id: str) -> dict[str, Any]:
-        summary = _read_json(self.directory(scan_id) / RESULT)
+        summary = _kept_result(self.directory(scan_id))
         if summary is None:
             raise ScanNotFound(f"{scan_id} has no result")
         return summary

@@ -135,7 +135,9 @@ class _Token:
         given = [v for k, v in query if k == "token"]
         if given and self._matches(given[-1]):
             rest = urlencode([(k, v) for k, v in query if k != "token"])
-            name = request.url.path.rsplit("/", 1)[-1] or "./"
+            # the page itself, relative (behind a proxy's prefix too), as "./name": a bare last
+            # segment such as "https:evil.example" reads as an absolute URL (an open redirect)
+            name = "./" + request.url.path.rsplit("/", 1)[-1]
             response: Response = RedirectResponse(name + (f"?{rest}" if rest else ""), 303)
             response.set_cookie(COOKIE, self.token.decode(), httponly=True, samesite="strict")
         else:
