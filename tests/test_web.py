@@ -457,3 +457,31 @@ def test_the_token_login_redirects_only_within_the_page(path: str, location: str
     assert start["status"] == 303
     headers = dict(start["headers"])
     assert headers[b"location"].decode() == f"{location}?range=7d"
+
+
+def test_library_log_records_are_json_lines_too() -> None:
+    """uvicorn logs a failed request ("Exception in ASGI application") through the standard
+    library, which had printed a plain multi-line traceback among the agent's JSON lines: now
+    every line on stderr is one JSON object, the traceback inside it; below warnings nothing."""
+    import subprocess
+    import sys
+
+    code = (
+        "import logging\n"
+        "from silo_agent.base.log import configure_logging\n"
+        "configure_logging('info', json_output=True)\n"
+        "try:\n"
+        "    1 / 0\n"
+        "except ZeroDivisionError:\n"
+        "    logging.getLogger('uvicorn.error').error('Exception in ASGI application',"
+        " exc_info=True)\n"
+        "logging.getLogger('apscheduler').info('below warning: not shown')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1, done.stderr
+    record = json.loads(lines[0])
+    assert record["logger"] == "uvicorn.error" and record["level"] == "error"
+    assert "ZeroDivisionError" in record["exception"]
