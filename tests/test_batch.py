@@ -262,3 +262,14 @@ def test_process_lets_go_of_the_raw_clouds_before_the_clustering(
     # a bin's first pass (the wall step) clusters too, on the raw clouds: the last is the peak
     assert kept_alive[-1] and not let_go[-1]
     assert released == kept
+
+
+def test_scan_directories_may_follow_the_options(two_scans: list[Path]) -> None:
+    """`process a --json b`: argparse takes one run of positionals, and the second directory
+    was an "unrecognized argument"; an unknown option still is."""
+    first, second = map(str, two_scans)
+    done = run_cli("process", first, "--json", "--grid-step", STEP, second)
+    assert done.returncode == 0, done.stderr
+    assert [r["scan_dir"] for r in _lines(done.stdout)] == [first, second]
+    bad = run_cli("process", first, "--jsn", second)
+    assert bad.returncode == 2 and "unrecognized arguments: --jsn" in bad.stderr
