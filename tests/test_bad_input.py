@@ -305,3 +305,21 @@ def test_a_config_path_that_is_no_config_file_is_one_line(tmp_path: Path, kind: 
     assert result.returncode == 78
     fragment = "larger than" if kind == "huge" else "not a regular file"
     _assert_clear_failure(result, str(path), fragment)
+
+
+def test_a_report_on_a_full_disk_leaves_the_previous_one_whole(tmp_path: Path, scan_dir) -> None:
+    """report --out over an earlier report on a file system that has filled up: one line
+    naming the file, exit 1, and the earlier report as it was (a truncated new one had taken
+    its place)."""
+    from tests.support.faults import fill, tmpfs
+
+    with tmpfs(tmp_path / "small", "2m") as small:
+        out = small / "r.html"
+        assert run_cli("report", str(scan_dir), "--out", str(out)).returncode == 0
+        before = out.read_bytes()
+        fill(small)
+        result = run_cli("report", str(scan_dir), "--out", str(out))
+        assert result.returncode == 1
+        _assert_clear_failure(result, f"cannot write {out}", "No space left on device")
+        assert out.read_bytes() == before and before.rstrip().endswith(b"</html>")
+        assert sorted(p.name for p in small.iterdir()) == ["filler", "r.html"]

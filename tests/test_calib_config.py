@@ -193,3 +193,37 @@ directory = "{tmp_path / "scans"}"
         assert abs(new[2, 3] - old[2, 3]) < 0.002
         tilt = np.degrees(np.arccos(np.clip(old[2, :3] @ new[2, :3], -1, 1)))
         assert tilt < 0.05
+
+
+def test_cli_calibrate_write_to_a_read_only_config_prints_the_result_and_changes_nothing(
+    tmp_path: Path, scan_dir: Path
+) -> None:
+    """A config on a read-only file system: the calibration (seconds of work) is printed all
+    the same, with one line naming the file and exit 1; the file, and its directory, as they
+    were (it had been a traceback with the result lost)."""
+    import subprocess
+
+    from tests.support.faults import tmpfs
+
+    with tmpfs(tmp_path / "ro", "1m") as ro:
+        config = _config_for(ro, ["sim-A1", "sim-A3"])
+        text = config.read_text()
+        subprocess.run(["mount", "-o", "remount,ro", str(ro)], check=True)
+        done = run_cli(
+            *("calibrate", "--config", str(config), "--scan", str(scan_dir), "--write", "--json")
+        )
+        assert done.returncode == 1
+        out = json.loads(done.stdout)
+        assert out["config_written"] is False and out["backup"] is None
+        assert set(out["registration_residual_m"]) == {"sim-A1|sim-A3"}
+        (line,) = done.stderr.strip().splitlines()
+        assert line.startswith(f"silo-agent: {config}: cannot write it") and "not changed" in line
+        assert config.read_text() == text and sorted(p.name for p in ro.iterdir()) == ["c.toml"]
+
+
+def test_cli_calibrate_bounds_the_captures_it_keeps(tmp_path: Path) -> None:
+    """Each capture is a scan kept in the audit cache: a billion of them filled the disk."""
+    config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
+    done = run_cli("calibrate", "--config", str(config), "--capture", "--captures", "1000000000")
+    assert done.returncode == 2 and "must be 1 to" in done.stderr
+    assert not (tmp_path / "scans").exists()

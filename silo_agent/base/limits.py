@@ -12,6 +12,7 @@ MAX_MANIFEST_BYTES = 16 * 1024 * 1024  # scan.json (it carries the config snapsh
 MAX_CONFIG_BYTES = MAX_MANIFEST_BYTES  # a config file: it must fit in a scan's manifest
 MAX_COORDINATE_M = 100_000.0  # |translation| of an extrinsic: far beyond any silo, within float32
 MAX_DURATION_S = 366 * 24 * 3600.0  # any configured interval or timeout: at most a year
+MAX_CALIBRATION_CAPTURES = 20  # calibrate --captures: each a scan kept (4-8 pool the noise)
 MAX_REQUEST_ID_CHARS = 128  # a command's request_id, echoed in every reply
 MAX_COMMAND_BYTES = 65536  # a command's payload (P/cmd/scan, P/cmd/live): a few hundred at most
 MAX_TOPIC_PREFIX_BYTES = 1024  # topic_prefix, discovery_prefix: MQTT allows 65,535 per topic

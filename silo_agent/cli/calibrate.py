@@ -6,6 +6,7 @@ import argparse
 import json
 
 from silo_agent.base.exits import DATA_ERROR, FAILURE, OK, USAGE
+from silo_agent.base.limits import MAX_CALIBRATION_CAPTURES
 from silo_agent.calibrate import (
     CalibrationError,
     ScanMismatch,
@@ -27,8 +28,8 @@ def calibrate(args: argparse.Namespace) -> int:
     if args.captures is not None and args.scan:
         return fail("--captures goes with --capture (give --scan once per scan instead)", USAGE)
     captures = 1 if args.captures is None else args.captures
-    if captures < 1:
-        return fail(f"--captures {captures}: must be at least 1", USAGE)
+    if not 1 <= captures <= MAX_CALIBRATION_CAPTURES:  # each is a scan kept in the audit cache
+        return fail(f"--captures {captures}: must be 1 to {MAX_CALIBRATION_CAPTURES}", USAGE)
     try:
         if args.scan:
             scans, names = read_scans(args.scan)
@@ -46,21 +47,23 @@ def calibrate(args: argparse.Namespace) -> int:
         return fail(str(exc), DATA_ERROR)
     except CalibrationError as exc:
         return fail(f"{source}: {exc}", DATA_ERROR if isinstance(exc, SerialMismatch) else FAILURE)
-    backup = None
-    if args.write:
+    backup = write_error = None
+    if args.write:  # refused or failed: the result is still printed, the config unchanged
         try:
             backup = write_calibrated_config(args.config, result.extrinsics())
         except CalibrationError as exc:
-            return fail(str(exc), FAILURE)
+            write_error = str(exc)
+        except OSError as exc:
+            write_error = f"{args.config}: cannot write it: {exc.strerror or exc}; not changed"
     if args.json:
         out = result.to_json()
-        out["config_written"] = bool(args.write)
+        out["config_written"] = backup is not None
         out["backup"] = None if backup is None else str(backup)
         print(json.dumps(out, allow_nan=False))
     else:
         print(result.describe())
         if backup is not None:
             print(f"{args.config}: extrinsics updated (previous file kept as {backup})")
-        else:
+        elif write_error is None:
             print("config not changed (use --write to update it)")
-    return OK
+    return fail(write_error, FAILURE) if write_error is not None else OK

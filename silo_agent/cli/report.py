@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from silo_agent.base.atomic import write_atomic
 from silo_agent.base.exits import DATA_ERROR, FAILURE, OK, USAGE
 from silo_agent.cli.cache import scan_dir
 from silo_agent.cli.common import fail, load_config
@@ -30,8 +31,8 @@ def report(args: argparse.Namespace) -> int:
     except ScanError as exc:
         return fail(str(exc), DATA_ERROR)
     data = report_html(view).encode() if suffix == ".html" else report_png(view)
-    try:
-        args.out.write_bytes(data)
+    try:  # whole or not at all: a full disk had left a truncated report in the old one's place
+        write_atomic(args.out, data, keep_mode=args.out.is_file())
     except OSError as exc:
         return fail(f"cannot write {args.out}: {exc.strerror or exc}", FAILURE)
     print(args.out)

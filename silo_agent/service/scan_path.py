@@ -117,6 +117,10 @@ def config_snapshot(scan: Scan, source: str) -> dict[str, Any]:
 
 
 def _validated(model: type[Model], data: dict[str, Any], source: str) -> Model:
+    """`data` as `model`, without the keys it does not know: silo-scan/1 readers ignore keys
+    they do not know (docs/scan-format.md), so a scan written by a newer agent still reads."""
+    if isinstance(data, dict):
+        data = {key: value for key, value in data.items() if key in model.model_fields}
     try:
         return model.model_validate(data)
     except ValidationError as exc:
