@@ -5,6 +5,7 @@ tests/test_adversarial_input.py prove the same through `silo-agent run` and a re
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import threading
@@ -159,3 +160,26 @@ def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
     assert not (outcome.directory / "result.json").exists()
     assert len(publisher.of("result")) == 1
     assert [(e.type, e.state) for e in publisher.alarms()] == [("cache", "raised")]
+
+
+def test_the_alarm_state_is_saved_on_a_full_disk_by_evicting_an_old_scan(
+    tmp_path: Path, tiny_disk: Path
+) -> None:
+    """The alarm state (the collapse baseline, raised alarms) is saved next to the scans: on
+    a disk that stayed full it was never saved again, and after a restart the baseline it
+    named was gone. Now an older scan, never the baseline, is evicted to make room."""
+    scans = tiny_disk / "scans"
+    scans.mkdir()
+    config = _config(tmp_path, audit={"directory": str(scans)})
+    pipeline, _publisher = _pipeline(config)
+    old, new = _run(pipeline, n=0), _run(pipeline, n=1)
+    assert old.directory is not None and new.directory is not None
+    baseline = pipeline.state.baseline_scan_id
+    assert baseline is not None and baseline != old.scan_id  # the newer scan is the baseline
+    pipeline.state = dataclasses.replace(pipeline.state, baseline_scan_id=new.scan_id)
+    (scans / "alarm-state.json").unlink()  # the state as it must be saved again
+    _leave(tiny_disk, 0)
+    pipeline._save_state()
+    saved = json.loads((scans / "alarm-state.json").read_text())
+    assert saved == json.loads(json.dumps(pipeline.state.to_json()))
+    assert not old.directory.exists() and new.directory.exists()

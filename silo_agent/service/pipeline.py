@@ -30,7 +30,7 @@ from silo_agent.config import Config
 from silo_agent.reconstruct import Reconstruction
 from silo_agent.scan import gravity_angles
 from silo_agent.service.scan_once import Stages, scan_once
-from silo_agent.storage.audit import AuditCache, dump_json
+from silo_agent.storage.audit import AuditCache, dump_json, is_disk_full
 from silo_agent.telemetry.prometheus import Metrics
 from silo_agent.telemetry.publisher import Publisher
 
@@ -80,11 +80,21 @@ class Pipeline:
             return AlarmState()
 
     def _save_state(self) -> None:
-        try:
-            self.cache.directory.mkdir(parents=True, exist_ok=True)
-            write_atomic(self.state_path, dump_json(self.state.to_json()))
-        except OSError as exc:
-            log.error("cannot save the alarm state", path=str(self.state_path), error=str(exc))
+        """The alarm state into the audit directory; on a full disk evict older scans (never
+        the baseline) and retry once, as a scan's write does: a disk that stayed full had kept
+        the state from ever being saved, and after a restart the baseline it names was gone."""
+        for attempt in range(2):
+            try:
+                self.cache.directory.mkdir(parents=True, exist_ok=True)
+                write_atomic(self.state_path, dump_json(self.state.to_json()))
+                return
+            except OSError as exc:
+                error = exc
+            if attempt or not is_disk_full(error):
+                break
+            removed = self.cache.evict_for_space(self.protected())
+            log.warning("disk full, evicted scans", removed=removed, to="save the alarm state")
+        log.error("cannot save the alarm state", path=str(self.state_path), error=str(error))
 
     def protected(self) -> set[str]:
         """Scans retention must keep: the collapse baseline."""
