@@ -1,12 +1,13 @@
-"""Reading a file a user named, whatever it turns out to be: only a regular file is read (a
-FIFO would block, a device such as /dev/zero never ends, a directory is no file), and never
-more than a bound. The callers say which file and raise their own error (ScanError,
-ConfigError) with the problem given here."""
+"""Files and directories a user named, whatever they turn out to be. Only a regular file is
+read (a FIFO would block, a device such as /dev/zero never ends, a directory is no file), and
+never more than a bound; a directory to write into is tried, not guessed. The callers say
+which path and raise their own error (ScanError, ConfigError) with the problem given here."""
 
 from __future__ import annotations
 
 import os
 import stat
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -43,3 +44,22 @@ def read_regular(path: Path, limit: int) -> bytes:
     if len(raw) > limit:
         raise FileProblem(f"larger than the limit of {limit:,} bytes")
     return raw
+
+
+def writable_directory_problem(directory: Path) -> str | None:
+    """Why the agent could not create and write `directory`, or None. The nearest existing
+    ancestor must be a directory the agent can create entries in (tried, and undone: nothing
+    is left behind, so a command that then writes nothing leaves no trace)."""
+    existing = directory
+    try:
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        if not existing.is_dir():
+            return f"{existing} is not a directory"
+    except OSError as exc:  # a name the file system cannot hold (ENAMETOOLONG)
+        return f"cannot use {directory}: {exc.strerror or exc}"
+    try:
+        tempfile.TemporaryDirectory(prefix=".silo-agent-check.", dir=existing).cleanup()
+    except OSError as exc:
+        return f"cannot create files in {existing}: {exc.strerror or exc}"
+    return None

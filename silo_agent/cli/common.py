@@ -4,7 +4,6 @@ and the argument types. Imports nothing heavy: `process --help` loads this."""
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -60,16 +59,11 @@ def numpy_unused_lazily() -> None:
 
 def output_directory_problem(path: Path) -> str | None:
     """Why a command could not make (or write into) the directory `path`, in one line naming
-    it; None if it can. Nothing is created: a command that then has nothing to write leaves
-    no trace."""
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        return f"{path}: cannot write there: it or a part of its path is a file"
-    if not os.access(existing, os.W_OK | os.X_OK):
-        return f"{path}: cannot write there: permission denied"
-    return None
+    it; None if it can (`files.writable_directory_problem`, the check `run` makes)."""
+    from silo_agent.base.files import writable_directory_problem
+
+    problem = writable_directory_problem(path)
+    return None if problem is None else f"{path}: cannot write there: {problem}"
 
 
 def configure_logging(args: argparse.Namespace) -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import tomllib
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from pydantic import (
     ValidationError,
 )
 
-from silo_agent.base.files import FileProblem, read_regular
+from silo_agent.base.files import FileProblem, read_regular, writable_directory_problem
 from silo_agent.base.limits import MAX_CONFIG_BYTES
 from silo_agent.config.base import ConfigError, describe_validation_error
 from silo_agent.config.mqtt import MqttTlsConfig, read_secret
@@ -41,27 +40,9 @@ def parse_config(data: dict, source: str) -> Config:
         raise ConfigError(describe_validation_error(exc, source)) from None
 
 
-def _writable_directory_problem(directory: Path) -> str | None:
-    """Why the agent could not create and write `directory`, or None. The nearest existing
-    ancestor must be a directory the agent can create entries in (tried, and undone)."""
-    existing = directory
-    try:
-        while not existing.exists() and existing != existing.parent:
-            existing = existing.parent
-        if not existing.is_dir():
-            return f"{existing} is not a directory"
-    except OSError as exc:  # a name the file system cannot hold (ENAMETOOLONG)
-        return f"cannot use {directory}: {exc.strerror or exc}"
-    try:
-        tempfile.TemporaryDirectory(prefix=".silo-agent-check.", dir=existing).cleanup()
-    except OSError as exc:
-        return f"cannot create files in {existing}: {exc.strerror or exc}"
-    return None
-
-
 def _outbox_problem(outbox: Path) -> str | None:
     """Why the agent could not keep its outbox at `outbox`, or None."""
-    problem = _writable_directory_problem(outbox.parent)
+    problem = writable_directory_problem(outbox.parent)
     if problem:
         return problem
     try:
@@ -144,7 +125,7 @@ def environment_problems(config: Config) -> list[str]:
     it writes, files it reads. Checked at start and by check-config, not on every parse."""
     problems = []
     for key, problem in (
-        ("audit.directory", _writable_directory_problem(config.audit.directory)),
+        ("audit.directory", writable_directory_problem(config.audit.directory)),
         ("mqtt.outbox_path", _outbox_problem(config.mqtt.outbox_path)),
     ):
         if problem:
