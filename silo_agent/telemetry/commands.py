@@ -73,6 +73,11 @@ def readable_request_id(payload: bytes) -> str | None:
         body = json.loads(payload.decode("utf-8"))
     except (ValueError, RecursionError):
         return None
+    return _request_id_in(body)
+
+
+def _request_id_in(body: object) -> str | None:
+    """A command body's `request_id` if it is one a reply can echo (a string, 1-128 chars)."""
     rid = body.get("request_id") if isinstance(body, dict) else None
     return rid if isinstance(rid, str) and 0 < len(rid) <= MAX_REQUEST_ID_CHARS else None
 
@@ -92,8 +97,7 @@ def parse_scan_request(payload: bytes) -> tuple[ScanRequest | None, str | None, 
         return None, None, "invalid JSON: nested too deeply"
     if not isinstance(body, dict):
         return None, None, f"payload must be a JSON object, got {type(body).__name__}"
-    rid = body.get("request_id")
-    request_id = rid if isinstance(rid, str) and 0 < len(rid) <= MAX_REQUEST_ID_CHARS else None
+    request_id = _request_id_in(body)
     try:
         return ScanRequest.model_validate(body), request_id, None
     except ValidationError as exc:
