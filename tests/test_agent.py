@@ -495,7 +495,8 @@ def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
         )
     )
 
-    # no camera at all: the scan fails, is reported on P/scan, the agent goes on and stops cleanly
+    # no camera at all: the scan fails, is reported on P/scan, the agent goes on, stops after
+    # its two scans and exits 1 saying they gave no result (as `scan` does)
     write_config(
         config,
         broker.port,
@@ -505,12 +506,13 @@ def test_failing_cameras_degrade_the_scan_or_fail_it_and_the_agent_goes_on(
     )
     agent = Daemon(config, tmp_path, "--scans", "2")
     try:
-        assert agent.wait(60) == 0
+        assert agent.wait(60) == 1
     finally:
         agent.kill()
     assert [e["reason"] for e in agent.log() if e.get("event") == "scan failed"] == [
         "capture: no camera delivered a cloud"
     ] * 2
+    assert agent.log_of("silo-agent: 2 of 2 scans gave no result (see the log)")
     col.wait_topic(f"{BASE}/scan", 3)
     report = validate_json(col.on(f"{BASE}/scan")[-1].payload)
     assert report["valid"] is False and report["volume_m3"] is None

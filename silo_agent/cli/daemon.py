@@ -30,6 +30,10 @@ def run(args: argparse.Namespace) -> int:
     if args.scans is not None and last is not None and last.summary is not None:
         summary = last.summary
         print(json.dumps(summary.to_json(), allow_nan=False) if args.json else describe(summary))
+    if args.scans is not None and agent.failed_scans and status == OK:
+        # a one-off or cron `run --scans N` says so when a scan gave no result, as `scan` does
+        failed, done = agent.failed_scans, agent.scans_done
+        return fail(f"{failed} of {done} scans gave no result (see the log)", FAILURE)
     return status
 
 

@@ -119,6 +119,7 @@ class Agent:
         self._pending = _Pending()
         self._running: _Running | None = None
         self._done = 0
+        self.failed_scans = 0  # scans that gave no result (`run --scans N` exits 1 on any)
         self._last: Outcome | None = None
         self._scheduler: Schedule | None = None
         self._deaths: dict[str, list[float]] = {}  # internal thread -> when it died
@@ -146,6 +147,11 @@ class Agent:
                 log.info("no valid scan result restored", reason=str(exc))
                 newest_valid = None
         self.metrics.restore_results(newest, newest_valid)
+
+    @property
+    def scans_done(self) -> int:
+        """Scans finished (a result or a failure) since the agent started."""
+        return self._done
 
     @property
     def last_outcome(self) -> Outcome | None:
@@ -296,6 +302,7 @@ class Agent:
         running.reported = True
         self._last = outcome
         self._done += 1
+        self.failed_scans += outcome.outcome == "failed"
         for command in running.requests:
             self.telemetry.finish_scan_request(
                 command,
