@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from silo_agent.base.choices import LAYOUTS, SCENE_LAYOUTS, SCENE_NAMES
+from silo_agent.base.choices import LAYOUTS, SCENE_LAYOUTS, SCENE_NAMES, SCENE_SITES
 from silo_agent.config import ConfigError, SimulationConfig, load_config, parse_config
 from silo_agent.reconstruct import site_from_config
 from silo_agent.scan import CameraCloud, Scan, ScanError, Site, read_scan, write_scan
@@ -161,7 +161,7 @@ def test_bad_simulation_settings_are_refused(tmp_path: Path, case: str) -> None:
     "edits",
     [
         [('scene = "cone"', 'scene = "bay-cone"')],
-        [('scene = "cone"', 'scene = "cone"\nsequence = ["cone", "hopper-low"]')],
+        [('scene = "cone"', 'scene = "cone"\nsequence = ["cone", "piles", "ridge"]')],
         [("seed = 0", "seed = 7")],
         [('view = "A1"', "rotate_deg = [0, 0, 0]\ntranslate_m = [0, 0, 2]")],
     ],
@@ -377,6 +377,11 @@ def test_a_layout_that_does_not_fit_the_scene_is_refused_naming_the_key(
     assert result.returncode == EX_CONFIG and f"{path}: {key}: {message}" in result.stderr
 
 
+SITE_SCENES = {
+    site: [n for n in SCENE_NAMES if SCENE_SITES[n] == site] for site in SCENE_SITES.values()
+}
+
+
 @pytest.mark.parametrize(
     "edits",
     [
@@ -384,13 +389,16 @@ def test_a_layout_that_does_not_fit_the_scene_is_refused_naming_the_key(
         [('scene = "cone"', 'scene = "bin-18"'), ('layout = "paper"', 'layout = "eave"')],
         # the sequence overrides the scene: the cone, which no eave fits, is not taken
         [
-            ('scene = "cone"', 'scene = "cone"\nsequence = ["bin-heap", "hopper-low"]'),
+            ('scene = "cone"', 'scene = "cone"\nsequence = ["bin-heap", "bin-crater", "bin-side"]'),
             ('layout = "paper"', 'layout = "eave"'),
         ],
-        [
-            ('scene = "cone"', f"sequence = {json.dumps(list(SCENE_NAMES))}"),
-            ('layout = "paper"', 'layout = "wall"'),  # it fits every scene
-        ],
+        *(  # a sequence of every scene of a site (a sequence is of one site: SCENE_SITES)
+            [
+                ('scene = "cone"', f"sequence = {json.dumps(SITE_SCENES[site])}"),
+                ('layout = "paper"', 'layout = "wall"'),  # it fits every scene
+            ]
+            for site in SITE_SCENES
+        ),
     ],
 )
 def test_a_layout_that_fits_every_scene_taken_still_loads(tmp_path: Path, edits) -> None:

@@ -13,6 +13,7 @@ from silo_agent.cli import build_parser, main
 from silo_agent.config import ConfigError, load_config, parse_config
 from silo_agent.scan import read_scan
 from silo_agent.sim import SCENES, make_scene, simulate, view_pose
+from tests.support.cli import run_cli
 
 DEMO = Path(__file__).resolve().parent.parent / "config" / "demo.toml"
 
@@ -136,3 +137,34 @@ def test_a_layout_that_buries_the_cameras_is_refused(
     paper = config.simulation.model_copy(update={"layout": "paper"})
     (failure,) = capture_all(config.model_copy(update={"simulation": paper})).failures
     assert "buried" in failure.error
+
+
+@pytest.mark.parametrize(
+    ("sequence", "key", "site"),
+    [
+        (["bay-cone", "bin-heap"], "simulation.sequence.1", "'bin-heap' (10 m bin)"),
+        (["flat", "crater", "full"], "simulation.sequence.2", "'full' (6 m bay under a roof)"),
+        (["empty", "bay-cone", "crater"], "simulation.sequence.2", "'crater' (6 m bay, region"),
+    ],
+)
+def test_a_sequence_that_mixes_sites_is_refused_naming_the_entry(
+    tmp_path: Path, sequence: list[str], key: str, site: str
+) -> None:
+    """A `[simulation] sequence` is one silo whose grain changes, its cameras where its first
+    scene places them: a later scene of another site was rendered from the first site's camera
+    places (a 10 m bin seen from the 6 m bay's walls: 1.8 % coverage). `check-config` (and
+    `run`) refuse it: exit 78, one line naming the file and the entry; one site still loads."""
+    text = DEMO.read_text().replace('layout = "paper"', 'layout = "wall"', 1)
+    path = tmp_path / "agent.toml"
+
+    def write(scenes: list[str]) -> None:
+        path.write_text(text.replace("[simulation]\n", f"[simulation]\nsequence = {scenes}\n"))
+
+    write(sequence)
+    done = run_cli("check-config", str(path))
+    assert done.returncode == 78 and done.stdout == ""
+    (line,) = done.stderr.splitlines()
+    assert line.startswith(f"silo-agent: {path}: {key}: scene {site}"), line
+    assert f"the sequence's first scene {sequence[0]!r}" in line
+    write(sequence[:-1])  # the same without the scene of another site
+    assert run_cli("check-config", str(path)).returncode == 0

@@ -9,7 +9,7 @@ import itertools
 import numpy as np
 import pytest
 
-from silo_agent.base.choices import GRAINS, LAYOUTS, SCENE_LAYOUTS, SCENE_NAMES
+from silo_agent.base.choices import GRAINS, LAYOUTS, SCENE_LAYOUTS, SCENE_NAMES, SCENE_SITES
 from silo_agent.grid.geometry import transform_from_euler
 from silo_agent.scan import Scan
 from silo_agent.sim import SimRig, make_scene, simulate, view_pose
@@ -192,6 +192,28 @@ def test_the_layouts_the_table_gives_a_scene_are_those_the_simulator_renders(nam
         else:
             with pytest.raises(ValueError, match=rf"\(it fits {', '.join(fits)}\): "):
                 simulate(scene, ["A1"], layout=layout, rig=rig, resolution=(64, 48))
+
+
+def test_the_sites_the_table_gives_the_scenes_are_the_scenes_own() -> None:
+    """The config refuses a sequence that mixes sites by `SCENE_SITES` alone: two scenes share
+    a site there exactly when their scans carry the same site (region, floor_z, ceiling_z,
+    base, bin) and every layout that fits both hangs each camera at the same place in both."""
+    assert set(SCENE_SITES) == set(SCENE_NAMES)
+    scenes = {name: make_scene(name) for name in SCENE_NAMES}
+    for a, b in itertools.combinations(SCENE_NAMES, 2):
+        one, two = scenes[a].site, scenes[b].site
+        same = (
+            (one.floor_z, one.ceiling_z, one.base, one.bin)
+            == (two.floor_z, two.ceiling_z, two.base, two.bin)
+            and one.region.shape == two.region.shape
+            and np.allclose(one.region, two.region, atol=1e-9)
+        )
+        assert same == (SCENE_SITES[a] == SCENE_SITES[b]), (a, b)
+        if same:
+            for layout in set(SCENE_LAYOUTS[a]) & set(SCENE_LAYOUTS[b]):
+                for view in VIEWS:
+                    here, there = (placement(scenes[n], view, layout)[0] for n in (a, b))
+                    np.testing.assert_allclose(here, there, err_msg=f"{a} {b} {layout} {view}")
 
 
 def test_calibration_error_moves_the_rendering_not_the_written_extrinsic() -> None:

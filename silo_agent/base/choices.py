@@ -54,6 +54,29 @@ SCENE_LAYOUTS: dict[str, tuple[Layout, ...]] = {
 }
 SCENE_NAMES: tuple[str, ...] = tuple(SCENE_LAYOUTS)
 
+# The site each scene stands on: the `site` its scans carry (region, floor_z, ceiling_z, base,
+# bin) and the building around it, where the layouts hang the cameras. A `[simulation]
+# sequence` is one silo whose grain changes scan after scan, its cameras kept where its first
+# scene places them, so all its scenes are of one site: the config refuses a sequence that
+# mixes sites (its later scenes were rendered from the first site's camera places).
+# tests/test_sim_layouts.py checks this table against the scenes' own sites.
+SCENE_SITES: dict[str, str] = {
+    "cone": "open floor",
+    "piles": "open floor",
+    "ridge": "open floor",
+    "crater": "6 m bay, region wall to wall",
+    "flat": "6 m bay, region wall to wall",
+    "full": "6 m bay under a roof",
+    "empty": "6 m bay, region 0.3 m inside the walls",
+    "bay-cone": "6 m bay, region 0.3 m inside the walls",
+    "bin-heap": "10 m bin",
+    "bin-crater": "10 m bin",
+    "bin-side": "10 m bin",
+    "hopper-heap": "8 m hopper bin",
+    "hopper-low": "8 m hopper bin",
+    "bin-18": "18 m bin",
+}
+
 
 def layout_misfit(scene: str, layout: str) -> str | None:
     """Why `layout` cannot place the cameras in the library scene `scene`, or None when it can.
@@ -62,3 +85,14 @@ def layout_misfit(scene: str, layout: str) -> str | None:
     if fits is None or layout in fits:
         return None
     return f"layout {layout!r} does not fit scene {scene!r} (it fits {', '.join(fits)})"
+
+
+def site_misfit(first: str, scene: str) -> str | None:
+    """Why library scene `scene` cannot follow `first` in a sequence (another site), or None."""
+    if SCENE_SITES[scene] == SCENE_SITES[first]:
+        return None
+    return (
+        f"scene {scene!r} ({SCENE_SITES[scene]}) is not of the site of the sequence's first "
+        f"scene {first!r} ({SCENE_SITES[first]}): a sequence is one silo whose grain changes, "
+        "its cameras where its first scene places them"
+    )

@@ -24,6 +24,7 @@ from silo_agent.base.choices import (
     Grain,
     Layout,
     layout_misfit,
+    site_misfit,
 )
 from silo_agent.base.d455 import MAX_HEIGHT_PX, MAX_WIDTH_PX, MIN_IMAGE_PX
 from silo_agent.base.limits import MAX_DURATION_S
@@ -167,10 +168,15 @@ class SimulationConfig(Strict):
     @model_validator(mode="after")
     def _layout_fits(self) -> SimulationConfig:
         """A layout that cannot place the cameras in a scene passed `check-config` and failed
-        every capture of that scene; refused here, naming the layout or the sequence entry."""
+        every capture of that scene; refused here, naming the layout or the sequence entry. So
+        is a sequence entry on another site than the first (`base.choices.SCENE_SITES`)."""
         scenes = [(f"simulation.sequence.{k}", name) for k, name in enumerate(self.sequence)]
         for key, scene in scenes or [("simulation.layout", self.scene)]:
             misfit = layout_misfit(scene, self.layout)
+            if misfit is not None:
+                raise PydanticCustomError("config_key", "{misfit}", {"key": key, "misfit": misfit})
+        for key, scene in scenes:  # another site's scene was rendered from the first's cameras
+            misfit = site_misfit(self.sequence[0], scene)
             if misfit is not None:
                 raise PydanticCustomError("config_key", "{misfit}", {"key": key, "misfit": misfit})
         return self
