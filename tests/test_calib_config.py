@@ -146,6 +146,31 @@ def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: P
     assert "calibration.drift_consecutive" in done.stderr
 
 
+def test_cli_refuses_a_scan_of_another_silo(tmp_path: Path, scan_dir: Path) -> None:
+    """A scan whose manifest names another silo (same serials, same scene): refused with exit 65
+    and one line naming the manifest and both silo ids, before anything is calibrated or
+    written (it had proposed, and with --write written, poses from the other silo's scan)."""
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(scan_dir, other)
+    manifest = json.loads((other / "scan.json").read_text())
+    (other / "scan.json").write_text(json.dumps({**manifest, "silo_id": "silo-b"}))
+    config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
+    text = config.read_text()
+    for scans in ([other], [scan_dir, other]):
+        args = [a for d in scans for a in ("--scan", str(d))]
+        done = run_cli("calibrate", "--config", str(config), *args, "--floor", "--write", "--json")
+        assert done.returncode == 65 and done.stdout == ""
+        (line,) = done.stderr.splitlines()
+        assert line.startswith(f"silo-agent: {other / 'scan.json'}: silo_id 'silo-b' ")
+        assert "silo.id 'sim'" in line
+        assert config.read_text() == text and sorted(p.name for p in tmp_path.iterdir()) == [
+            "c.toml",
+            "other",
+        ]
+
+
 @pytest.mark.slow
 def test_cli_calibrate_capture_with_sim_cameras(tmp_path: Path) -> None:
     config = _config_for(tmp_path, ["sim-A1", "sim-A3"])

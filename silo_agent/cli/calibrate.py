@@ -34,6 +34,13 @@ def calibrate(args: argparse.Namespace) -> int:
         if args.scan:
             scans, names = read_scans(args.scan)
             source = ", ".join(str(d) for d in args.scan)
+            for scan, name in zip(scans, names, strict=True):  # another silo's: nonsense poses
+                if scan.silo_id != config.silo.id:
+                    return fail(
+                        f"{name}: silo_id {scan.silo_id!r} is not the config's silo.id "
+                        f"{config.silo.id!r}; calibrate with scans of the silo it describes",
+                        DATA_ERROR,
+                    )
         else:
             scans, names = capture_scans(config, captures)
             source = "capture"
