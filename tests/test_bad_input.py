@@ -323,3 +323,59 @@ def test_a_report_on_a_full_disk_leaves_the_previous_one_whole(tmp_path: Path, s
         _assert_clear_failure(result, f"cannot write {out}", "No space left on device")
         assert out.read_bytes() == before and before.rstrip().endswith(b"</html>")
         assert sorted(p.name for p in small.iterdir()) == ["filler", "r.html"]
+
+
+def _leave_inodes(disk: Path, free: int) -> None:
+    """Take every inode of the tmpfs `disk` but `free` of them (empty filler files)."""
+    fillers = []
+    try:
+        while True:
+            fillers.append(disk / f"inode-{len(fillers)}")
+            fillers[-1].touch()
+    except OSError as exc:
+        assert exc.errno == 28  # ENOSPC: out of inodes
+        fillers.pop()
+    for path in fillers[:free]:
+        path.unlink()
+
+
+@pytest.mark.parametrize("case", ["blocks, new --out", "blocks, --out of the user's", "inodes"])
+def test_a_scan_on_a_full_disk_is_one_line_and_leaves_no_scan(tmp_path: Path, case: str) -> None:
+    """`scan --out` on a file system that is full: one line naming the scan directory it could
+    not write and the OS error, exit 1, and no empty --out directory it made; an --out
+    directory that was there before stays, with what it held. With inodes for the raw scan but
+    none for result.json the raw scan (the measurement) is kept whole, for `process` later.
+    It had left the empty directory behind, its line naming neither the path nor (for the
+    result) the OS error."""
+    from tests.support.faults import fill, tmpfs
+
+    demo = Path(__file__).resolve().parent.parent / "config" / "demo.toml"
+    size = "20m,nr_inodes=64" if case == "inodes" else "64k"
+    with tmpfs(tmp_path / "small", size) as small:
+        out = small / "new" / "scans"
+        if case == "blocks, --out of the user's":
+            out = small / "scans"
+            out.mkdir()
+            (out / "note.txt").write_text("the user's\n")
+        before = sorted(str(p.relative_to(small)) for p in small.rglob("*"))
+        if case == "inodes":  # for the raw scan: --out, its parent, staging, 4 clouds, scan.json
+            _leave_inodes(small, 2 + 1 + 4 + 1)
+            before = sorted(p.name for p in small.iterdir())
+        else:
+            fill(small)
+            before.append("filler")
+        result = run_cli("scan", "--config", str(demo), "--out", str(out))
+        assert result.returncode == 1 and result.stdout == ""
+        assert "Traceback" not in result.stderr
+        (line,) = [x for x in result.stderr.splitlines() if x.startswith("silo-agent:")]
+        assert line == result.stderr.splitlines()[-1]
+        what = "keep the result with the scan" if case == "inodes" else "write the scan"
+        assert line.startswith(f"silo-agent: {out}/demo-"), line
+        assert f": cannot {what}: No space left on device;" in line, line
+        if case == "inodes":
+            assert line.endswith("; the raw scan is kept without it"), line
+            (kept,) = [p for p in out.iterdir() if p.name.startswith("demo-")]
+            assert str(kept) in line and not (kept / "result.json").exists()
+            assert run_cli("process", str(kept), "--json").returncode == 0  # a whole scan
+        else:
+            assert sorted(str(p.relative_to(small)) for p in small.rglob("*")) == sorted(before)

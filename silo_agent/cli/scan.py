@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from datetime import UTC, datetime
+from pathlib import Path
 
 from silo_agent.base.exits import CONFIG_ERROR, FAILURE, OK
 from silo_agent.cli.common import fail, load_config, output_directory_problem
@@ -23,21 +25,23 @@ def scan(args: argparse.Namespace) -> int:
     cache = AuditCache(audit, config.silo.id)
     if problem := output_directory_problem(cache.directory):  # before the cameras capture
         return fail(problem, FAILURE)
+    made = _missing(cache.directory)  # what writing the scan will create, deepest first
     started = datetime.now(UTC)
     run = scan_once(config, cache, new_scan_id(config, started, cache.names()), started, Stages())
     for failure in run.capture.failures:
         print(f"silo-agent: warning: {failure.error}", file=sys.stderr)
     if run.scan is None:
         return fail("no camera delivered a cloud; no scan written", FAILURE)
-    if run.directory is None:
-        return fail(f"cannot write the scan: {run.write_error}", FAILURE)
+    if run.directory is None:  # a full disk, a failing one: nothing of the scan is left
+        _remove_empty(made)
+        return fail(f"{run.write_error}; no scan written", FAILURE)
     if run.analysed is None:
         if isinstance(run.error, ModelError):
             return fail(f"{run.error}; the raw scan is kept in {run.directory}", CONFIG_ERROR)
         assert run.error is not None
         raise run.error
-    if run.cache_full:
-        return fail(f"cannot keep the result with the scan in {run.directory}", FAILURE)
+    if run.cache_full:  # the raw scan is the measurement: kept, to `process` once there is room
+        return fail(f"{run.write_error}; the raw scan is kept without it", FAILURE)
     if args.json:
         out = {**run.summary.to_json(), "scan_dir": str(run.directory)}
         print(json.dumps(out, allow_nan=False))
@@ -46,3 +50,22 @@ def scan(args: argparse.Namespace) -> int:
         degraded = " (degraded)" if run.capture.degraded else ""
         print(f"scan written to {run.directory}{degraded}")
     return OK
+
+
+def _missing(directory: Path) -> list[Path]:
+    """`directory` and its ancestors that do not exist yet, deepest first."""
+    missing = []
+    while not directory.exists() and directory != directory.parent:
+        missing.append(directory)
+        directory = directory.parent
+    return missing
+
+
+def _remove_empty(directories: list[Path]) -> None:
+    """Remove the directories this command made (deepest first), each only if it is empty:
+    anything another process put there since stays, and so do the directories above it."""
+    for directory in directories:
+        try:
+            os.rmdir(directory)
+        except OSError:
+            return

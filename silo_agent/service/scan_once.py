@@ -69,7 +69,7 @@ class ScanRun:
     summary: ScanSummary
     scan: Scan | None = None
     directory: Path | None = None  # None: not kept in the cache (see write_error)
-    write_error: str | None = None
+    write_error: str | None = None  # why the scan or its result was not kept: path, OS error
     cache_full: bool = False  # some of the scan or its result could not be kept
     analysed: ScanAnalysis | None = None
     previous: list[Pile] = field(default_factory=list)
@@ -126,7 +126,8 @@ def scan_once(
     summary = summary_of(analysed, scan, stages.timings)
     cache_full = directory is None
     if directory is not None:  # kept before the alarms, so losing it raises `cache`
-        cache_full = not _keep_result(cache, directory, summary, analysed, previous, protected)
+        write_error = _keep_result(cache, directory, summary, analysed, previous, protected)
+        cache_full = write_error is not None
     return ScanRun(
         scan_id,
         capture,
@@ -143,22 +144,23 @@ def scan_once(
 def _write(
     cache: AuditCache, scan: Scan, protected: Callable[[], set[str]]
 ) -> tuple[Path | None, str | None]:
-    """The raw scan into the cache: (its directory, None), or (None, why not). On a full disk
-    evict and retry once."""
+    """The raw scan into the cache: (its directory, None), or (None, why not: one line naming
+    the scan's directory and the OS error). On a full disk evict and retry once."""
     snapshot = scan.extra[CONFIG_KEY]
+    target = cache.directory / scan.scan_id
     for attempt in range(2):
         try:
             return cache.write_scan(scan, snapshot), None
         except OSError as exc:
+            error = f"{target}: cannot write the scan: {exc.strerror or exc}"
             if not is_disk_full(exc):
                 log.error(
                     "cannot write the scan to the audit cache", scan_id=scan.scan_id, error=str(exc)
                 )
-                return None, str(exc)
+                return None, error
             if attempt == 0:
                 removed = cache.evict_for_space(protected())
                 log.warning("disk full, evicted scans", removed=removed)
-            error = str(exc)
         except ScanError as exc:
             log.error("cannot write the scan", scan_id=scan.scan_id, error=str(exc))
             return None, str(exc)
@@ -173,12 +175,13 @@ def _keep_result(
     result: ScanAnalysis,
     previous: list[Pile],
     protected: Callable[[], set[str]],
-) -> bool:
+) -> str | None:
     """result.json, the height map and inputs.json into the scan's directory; on a full disk
-    evict older scans and retry once. False if they could not all be kept."""
+    evict older scans and retry once. None once kept, else why not (one line naming the scan's
+    directory and the OS error)."""
     try:
         keep_result(directory, summary, result, previous)
-        return True
+        return None
     except OSError as exc:
         error = exc
     if is_disk_full(error):
@@ -186,8 +189,8 @@ def _keep_result(
         log.warning("disk full, evicted scans", removed=removed)
         try:
             keep_result(directory, summary, result, previous)
-            return True
+            return None
         except OSError as exc:
             error = exc
     log.error("cannot keep the result with the scan", scan_id=directory.name, error=str(error))
-    return False
+    return f"{directory}: cannot keep the result with the scan: {error.strerror or error}"
