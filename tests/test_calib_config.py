@@ -110,7 +110,15 @@ def _config_for(tmp_path: Path, serials: list[str]) -> Path:
 
 
 def test_cli_calibrate_write_round_trip(tmp_path: Path, scan_dir: Path) -> None:
+    """The rewritten config keeps the installed file's mode, owner and group (here the
+    service's, as docs/operations.md installs it root:silo-agent 0640): written by root it
+    had come back root:root and the service could no longer read its own config."""
+    import os
+
     config = _config_for(tmp_path, ["sim-A1", "sim-A3"])
+    service = 65534  # nobody / nogroup: any owner and group but the writer's (root)
+    os.chown(config, service, service)
+    config.chmod(0o640)
     done = run_cli(
         "calibrate",
         "--config",
@@ -130,6 +138,8 @@ def test_cli_calibrate_write_round_trip(tmp_path: Path, scan_dir: Path) -> None:
         np.testing.assert_allclose(written[camera["serial"]], camera["extrinsic"], atol=1e-7)
         assert camera["leveled_by"] == "floor"
     assert "# sim-A1" in config.read_text()
+    kept = config.stat()
+    assert (kept.st_uid, kept.st_gid, kept.st_mode & 0o777) == (service, service, 0o640)
 
 
 def test_cli_names_unmatched_serials_and_bad_configs(tmp_path: Path, scan_dir: Path) -> None:

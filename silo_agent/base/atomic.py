@@ -23,19 +23,37 @@ def fsync_directory(directory: Path) -> None:
         os.close(fd)
 
 
+def _copy_access(source: Path, target: str) -> None:
+    """Give `target` the permission bits, owner and group of `source`: a config installed
+    root:silo-agent 0640 and rewritten by root came back root:root, and the service could no
+    longer read it. Where the owner cannot be given (not root), the group must be, or the
+    write is refused (OSError) and the file left as it was."""
+    shutil.copymode(source, target)
+    old = os.stat(source)
+    new = os.stat(target)
+    if (new.st_uid, new.st_gid) == (old.st_uid, old.st_gid):
+        return
+    try:
+        os.chown(target, old.st_uid, old.st_gid)
+    except PermissionError:
+        if new.st_gid != old.st_gid:
+            os.chown(target, -1, old.st_gid)  # PermissionError: not in its group, refused
+
+
 @contextmanager
-def atomic_writer(path: Path, *, keep_mode: bool = False) -> Iterator[BinaryIO]:
+def atomic_writer(path: Path, *, keep_access: bool = False) -> Iterator[BinaryIO]:
     """A binary handle whose content replaces (or creates) the file `path` when the block
-    ends, and leaves no trace if it raises. `keep_mode`: the new file keeps the old one's
-    permission bits (a config file an operator restricted); a new file is the owner's (0600)."""
+    ends, and leaves no trace if it raises. `keep_access`: the new file keeps the old one's
+    permission bits, owner and group (a config file an operator restricted to the service's
+    group); a new file is the writer's (0600)."""
     fd, staging = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
-        if keep_mode:
-            shutil.copymode(path, staging)
+        if keep_access:
+            _copy_access(path, staging)
         os.replace(staging, path)
         fsync_directory(path.parent)
     except BaseException:
@@ -43,9 +61,9 @@ def atomic_writer(path: Path, *, keep_mode: bool = False) -> Iterator[BinaryIO]:
         raise
 
 
-def write_atomic(path: Path, data: bytes, *, keep_mode: bool = False) -> None:
+def write_atomic(path: Path, data: bytes, *, keep_access: bool = False) -> None:
     """Replace (or create) the file `path` with `data` (`atomic_writer`)."""
-    with atomic_writer(path, keep_mode=keep_mode) as handle:
+    with atomic_writer(path, keep_access=keep_access) as handle:
         handle.write(data)
 
 

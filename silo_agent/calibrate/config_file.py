@@ -106,5 +106,5 @@ def write_calibrated_config(path: Path, poses: Mapping[str, np.ndarray]) -> Path
     target = path.resolve()  # a symlinked config: the file it names is rewritten, the link kept
     backup = target.with_name(f"{target.name}.{datetime.now(UTC):%Y%m%dT%H%M%S%fZ}.bak")
     shutil.copy2(target, backup)
-    write_atomic(target, new.encode("utf-8"), keep_mode=True)
+    write_atomic(target, new.encode("utf-8"), keep_access=True)
     return backup

@@ -32,7 +32,7 @@ def report(args: argparse.Namespace) -> int:
         return fail(str(exc), DATA_ERROR)
     data = report_html(view).encode() if suffix == ".html" else report_png(view)
     try:  # whole or not at all: a full disk had left a truncated report in the old one's place
-        write_atomic(args.out, data, keep_mode=args.out.is_file())
+        write_atomic(args.out, data, keep_access=args.out.is_file())
     except OSError as exc:
         return fail(f"cannot write {args.out}: {exc.strerror or exc}", FAILURE)
     print(args.out)

@@ -268,7 +268,7 @@ class AuditCache:
         if out.is_dir():  # refused before the archive is written, not at the rename
             raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(out))
         with (
-            atomic_writer(out, keep_mode=out.exists()) as handle,
+            atomic_writer(out, keep_access=out.exists()) as handle,
             tarfile.open(fileobj=handle, mode="w:gz") as tar,
         ):
             tar.add(path, arcname=scan_id)
