@@ -103,6 +103,35 @@ def test_manifest_not_json(scan_dir: Path) -> None:
 
 def test_missing_directory(tmp_path: Path) -> None:
     _assert_clear_failure(run_cli("process", str(tmp_path / "nope")), "nope", "not a directory")
+    # a scan directory that is not there, to the commands that also take a scan id: a bad scan
+    # directory (65), as for process; it had been a configuration error (78)
+    nope = str(tmp_path / "nope")
+    for command in (("report", nope, "--out", str(tmp_path / "r.html")), ("replay", nope)):
+        result = run_cli(*command)
+        _assert_clear_failure(result, nope, "no such scan directory", "needs --config")
+        assert result.returncode == 65
+
+
+def test_output_whose_reader_went_away_ends_quietly(scan_dir: Path) -> None:
+    """`process ... | head -1`: the reader closes the pipe; the command ends with 141 (as one
+    killed by SIGPIPE) and no traceback (it had printed a BrokenPipeError traceback)."""
+    import os
+    import subprocess
+    import sys
+
+    read, write = os.pipe()
+    os.close(read)  # the reader has gone before the first line is written
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "silo_agent", "process", str(scan_dir), "--json"],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        os.close(write)
+    assert done.returncode == 141 and done.stderr == ""
 
 
 def test_missing_cloud_file(scan_dir: Path) -> None:

@@ -11,3 +11,4 @@ USAGE = 2  # argparse's own status for bad command-line arguments
 DATA_ERROR = 65  # EX_DATAERR: a scan directory, cloud or manifest that cannot be used
 CONFIG_ERROR = 78  # EX_CONFIG: a configuration file that cannot be used
 INTERRUPTED = 130  # Ctrl-C
+OUTPUT_CLOSED = 141  # the reader of the output went away (`| head`): 128 + SIGPIPE, as a shell

@@ -28,7 +28,7 @@ from silo_agent.base.choices import (
     METHODS,
     SCENE_NAMES,
 )
-from silo_agent.base.exits import CONFIG_ERROR, DATA_ERROR, INTERRUPTED
+from silo_agent.base.exits import CONFIG_ERROR, DATA_ERROR, INTERRUPTED, OUTPUT_CLOSED
 from silo_agent.cli.common import (
     calib_error,
     configure_logging,
@@ -325,6 +325,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         return handler_of(args.handler)(args)
     except KeyboardInterrupt:
         return INTERRUPTED
+    except BrokenPipeError:  # `| head` took what it wanted: no traceback, nor one at exit
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return OUTPUT_CLOSED
     except Exception as exc:  # bad input met where no command expected it: still one line
         from silo_agent.base.limits import LimitExceeded
         from silo_agent.config import ConfigError  # loaded already if one was raised

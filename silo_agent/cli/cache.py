@@ -8,7 +8,6 @@ from pathlib import Path
 
 from silo_agent.base.exits import DATA_ERROR, FAILURE, OK, USAGE
 from silo_agent.cli.common import fail, load_config
-from silo_agent.config import ConfigError
 from silo_agent.scan import ScanError, read_manifest
 from silo_agent.service.scan_path import read_result
 from silo_agent.service.scan_path import replay as replayed
@@ -20,8 +19,9 @@ def scan_dir(target: str, config_path: Path | None) -> Path:
     path = Path(target)
     if path.is_dir():
         return path
-    if config_path is None:
-        raise ConfigError(f"{target}: not a directory; give --config to look it up by scan id")
+    if config_path is None:  # a bad scan directory (65), as docs/limits.md says
+        problem = "not a directory" if path.exists() else "no such scan directory"
+        raise ScanError(f"{target}: {problem} (a scan id needs --config to look it up)")
     config = load_config(config_path)
     return AuditCache(config.audit, config.silo.id).find(target)
 
