@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench system-deps clean
+.PHONY: demo test lint bench system-deps gateway clean
 
 # System libraries a fresh Debian lacks: libusb for open3d/pyrealsense2, mosquitto and chromium
 # (with its matching chromium-driver) for the tests, faketime (libfaketime) for the test that
@@ -31,6 +31,17 @@ $(STAMP): pyproject.toml | system-deps
 	$(PY) -m pip install -q -e '.[test,bench]'
 	$(PY) -m pip install -q --no-deps 'pysparkplug==0.6.1'   # test-only Sparkplug decoder
 	touch $(STAMP)
+
+# A gateway: the service and its own library only (libusb for the cameras; no test tools,
+# no browser), into the same .venv the systemd unit runs from.
+gateway:
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0; \
+	  else echo "missing system package, run: sudo apt-get install libusb-1.0-0"; exit 1; fi; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q .
 
 demo: system-deps $(STAMP)
 	$(VENV)/bin/silo-agent run --config config/demo.toml --scans 1
