@@ -12,17 +12,23 @@ from silo_agent.cli.common import fail, load_config
 from silo_agent.config import config_warnings
 from silo_agent.service.daemon import Agent
 from silo_agent.service.state_lock import StateLocked
+from silo_agent.telemetry.prometheus import Metrics
 
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, service=True)  # bad: ConfigError -> 78, nothing started
+    metrics = Metrics()
+    if config.metrics.enabled:  # its port bound now too: one in use is a 78, as the web's
+        metrics.bind(config.metrics)
     companions = []
     if config.web.enabled:  # the port bound now: one in use is a 78 before anything starts
         from silo_agent.web.server import WebServer  # Starlette and uvicorn: only with [web]
 
         companions.append(WebServer.bind(config.web))
     try:
-        agent = Agent(args.config, config, max_scans=args.scans, companions=companions)
+        agent = Agent(
+            args.config, config, max_scans=args.scans, companions=companions, metrics=metrics
+        )
     except StateLocked as exc:
         return fail(str(exc), FAILURE)
     status = agent.run()

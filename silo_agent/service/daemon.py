@@ -97,15 +97,17 @@ class Agent:
         max_scans: int | None = None,
         notifier: Notifier | None = None,
         companions: Sequence[Companion] = (),
+        metrics: Metrics | None = None,
     ) -> None:
-        """`companions`: served beside the agent (ready to start: ports bound, files read)."""
+        """`companions`: served beside the agent (ready to start: ports bound, files read);
+        `metrics`: its port bound by `run` (`Metrics.bind`), or bound when the agent starts."""
         self.config_path = config_path
         self.config = config
         self.max_scans = max_scans
         self.notifier = notifier or Notifier.from_env()
         self.state_lock = StateLock.of(config)
         self.state_lock.acquire()  # StateLocked: another agent runs on this state
-        self.metrics = Metrics()
+        self.metrics = metrics if metrics is not None else Metrics()
         self.telemetry = Telemetry.from_config(config)
         self.cache = AuditCache(config.audit, config.silo.id)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
@@ -321,7 +323,10 @@ class Agent:
     # ------------------------------------------------------------ reload
 
     def _do_reload(self) -> None:
-        """SIGHUP: take a new config if it is valid; a bad one is logged and ignored."""
+        """SIGHUP: take a new config if it is valid; a bad one is logged and ignored. What
+        needs a restart ([mqtt], silo.id, [metrics], [web]) keeps its running value, and each
+        reload whose file differs there from what runs says so: a scan named and cached under
+        a new silo.id while the topics keep the old one would mix two silos."""
         try:
             new = load_config(self.config_path, service=True)
         except ConfigError as exc:
@@ -331,12 +336,31 @@ class Agent:
                 error=str(exc),
             )
             return
-        if new.mqtt != self.config.mqtt or new.silo.id != self.config.silo.id:
-            log.warning("config reloaded; [mqtt] and silo.id changes need a restart")
-        if new.metrics != self.config.metrics:
-            log.warning("config reloaded; [metrics] changes need a restart")
-        if new.web != self.config.web:
-            log.warning("config reloaded; [web] changes need a restart")
+        running = self.config
+        kept = [
+            name
+            for name, changed in (
+                ("[mqtt]", new.mqtt != running.mqtt),
+                ("silo.id", new.silo.id != running.silo.id),
+                ("[metrics]", new.metrics != running.metrics),
+                ("[web]", new.web != running.web),
+            )
+            if changed
+        ]
+        if kept:
+            log.warning(
+                "config reloaded; these changes need a restart, the running values are kept",
+                kept=kept,
+                path=str(self.config_path),
+            )
+            new = new.model_copy(
+                update={
+                    "mqtt": running.mqtt,
+                    "silo": new.silo.model_copy(update={"id": running.silo.id}),
+                    "metrics": running.metrics,
+                    "web": running.web,
+                }
+            )
         for warning in config_warnings(new):
             log.warning("config", path=str(self.config_path), warning=warning)
         with self._lock:
@@ -380,7 +404,7 @@ class Agent:
             log.warning("config", path=str(self.config_path), warning=warning)
         self.cache.directory.mkdir(parents=True, exist_ok=True)
         self.cache.enforce(self.pipeline.protected())  # bounds may have changed while stopped
-        self.metrics.serve(config.metrics)
+        self.metrics.serve(config.metrics)  # on the port `run` bound, if it did
         self.telemetry.on_scan_request(self._requested)
         self.pipeline.clear_switched_off_alarms()  # e.g. low_volume_m3 removed while stopped
         self.telemetry.on_live_command(self.live.requested)

@@ -60,8 +60,10 @@ function showLatest(latest) {
   for (const [key, id, show] of [["fill_ratio", "fill", (v) => `${fixed(v * 100, 1)} %`],
                                   ["headspace_m", "headspace", (v) => fixed(v, 3)],
                                   ["capacity_m3", "capacity", (v) => fixed(v, 3)]]) {
-    $(`${id}-row`).hidden = !(key in d);
-    if (key in d) text(id, show(d[key]));
+    const value = d[key];  // null without a bin: the row hidden (not "fill 0.0 %")
+    const shown = value !== null && value !== undefined;
+    $(`${id}-row`).hidden = !shown;
+    if (shown) text(id, show(value));
   }
   const residuals = $("residuals").tBodies[0];
   residuals.replaceChildren();

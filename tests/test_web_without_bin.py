@@ -1,0 +1,101 @@
+"""A silo without `[silo.bin]` has no fill, headspace or capacity: the operator's page (a real
+headless chromium on `silo-agent run`'s page) hides those rows and /metrics (the daemon's own
+endpoint, read with prometheus_client's parser) has no sample of them. Both had shown 0: the
+page "fill 0.0 %", the metrics `silo_agent_last_fill_ratio 0.0`, an empty silo to an operator."""
+
+from __future__ import annotations
+
+import urllib.request
+from pathlib import Path
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from silo_agent.analysis.summary import ScanSummary
+from silo_agent.config import MetricsConfig
+from silo_agent.telemetry.prometheus import Metrics
+from tests.support.agent import Daemon, write_config
+from tests.support.mqtt_broker import free_port
+from tests.test_web import wait_js
+
+BIN_METRICS = ("silo_agent_last_fill_ratio", "silo_agent_last_headspace_meters")
+BIN_ROWS = ("fill-row", "headspace-row", "capacity-row")
+SUMMARY = {
+    "scan_id": "s1",
+    "captured_at": "2026-01-01T00:00:00Z",
+    "volume_m3": 100.0,
+    "mass_t": 77.0,
+    "coverage": 0.9,
+    "grid_step_m": 0.05,
+    "level": {"min": 1.0, "mean": 1.5, "max": 2.0},
+    "valid": True,
+    "capacity_m3": 400.0,
+    "fill_ratio": 0.25,
+    "headspace_m": 5.0,
+    "headspace_mean_m": 5.5,
+}
+
+
+def scrape(port: int) -> dict[str, list[float]]:
+    """Every family's sample values, as a scraper reads them."""
+    url = f"http://127.0.0.1:{port}/metrics"
+    text = urllib.request.urlopen(url, timeout=5).read().decode()
+    return {f.name: [s.value for s in f.samples] for f in text_string_to_metric_families(text)}
+
+
+@pytest.mark.slow
+def test_without_a_bin_the_page_hides_and_the_metrics_leave_out_the_bin_figures(
+    tmp_path: Path, broker, browser
+) -> None:
+    web_port, metrics_port = free_port(), free_port()
+    config = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        web={"enabled": True, "port": web_port},
+        metrics={"enabled": True, "port": metrics_port},
+    )
+    assert "[silo.bin]" not in config.read_text()
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("scan finished")
+        families = scrape(metrics_port)
+        assert families["silo_agent_last_volume_cubic_meters"][0] > 40  # ~43.2 m³ flat grain
+        for name in BIN_METRICS:
+            assert not families.get(name), f"{name} exported without a bin: {families[name]}"
+
+        browser.get(f"http://127.0.0.1:{web_port}/")
+        wait_js(browser, "document.getElementById('volume').dataset.published")
+        details = browser.execute_script(
+            "return fetch('api/state').then((r) => r.json()).then((s) => s.latest.details);"
+        )
+        assert [details[k] for k in ("fill_ratio", "headspace_m", "capacity_m3")] == [None] * 3
+        for row in BIN_ROWS:
+            assert browser.find_element("id", row).get_attribute("hidden") is not None, row
+        shown = browser.find_element("id", "figures").text
+        assert "fill" not in shown and "headspace" not in shown and "capacity" not in shown
+    finally:
+        agent.kill()
+
+
+def test_the_bin_figures_are_exported_while_the_last_valid_result_has_them() -> None:
+    """Served on a real port: a bin's result exports them, a later result without a bin (a
+    reload that removed `[silo.bin]`) takes them out, an invalid one leaves them as they were."""
+    port = free_port()
+    metrics = Metrics()
+    metrics.serve(MetricsConfig(enabled=True, port=port))
+    try:
+        assert not any(scrape(port).get(name) for name in BIN_METRICS)  # no result yet
+        metrics.record_result(ScanSummary.from_json(SUMMARY))
+        families = scrape(port)
+        assert families["silo_agent_last_fill_ratio"] == [0.25]
+        assert families["silo_agent_last_headspace_meters"] == [5.0]
+        metrics.record_result(ScanSummary.from_json({**SUMMARY, "valid": False, "fill_ratio": 0}))
+        assert scrape(port)["silo_agent_last_fill_ratio"] == [0.25]
+        without_bin = {k: v for k, v in SUMMARY.items() if "fill" not in k and "head" not in k}
+        metrics.record_result(ScanSummary.from_json({**without_bin, "capacity_m3": None}))
+        families = scrape(port)
+        assert families["silo_agent_last_volume_cubic_meters"] == [100.0]
+        assert not any(families.get(name) for name in BIN_METRICS)
+    finally:
+        metrics.close()
