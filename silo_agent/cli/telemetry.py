@@ -3,8 +3,11 @@
 publish: queue the messages (one JSON line per queued message on stdout: topic, msg_id, seq,
 ts), then send them; exit 0 when the broker has all of them, 1 if some are still pending after
 --timeout (they stay in the outbox for the next run). flush: send what an earlier run left in
-the outbox (then stay connected --linger seconds). schemas: write config/schemas/*.json from
-the payload models, or check they are current.
+the outbox (then stay connected --linger seconds). Both hold the lock `run` holds (one process
+per outbox: exit 1 while an agent runs on it) and connect as `<client_id>-publish` /
+`-flush`, sending the outbox's rows and nothing else: `P/status`, the alarm states, Home
+Assistant and Sparkplug are the agent's. schemas: write config/schemas/*.json from the payload
+models, or check they are current.
 """
 
 from __future__ import annotations
@@ -21,10 +24,13 @@ from typing import Any, TypeVar
 from pydantic import ValidationError
 
 from silo_agent.analysis.alarm_types import AlarmEvent
+from silo_agent.analysis.summary import ScanSummary
 from silo_agent.base.exits import DATA_ERROR, FAILURE, OK
 from silo_agent.cli.common import fail, load_config
+from silo_agent.config import Config
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.service.scan_path import checked_summary
+from silo_agent.service.state_lock import StateLock, StateLocked
 from silo_agent.storage.audit import load_heightmap
 from silo_agent.telemetry.client import Telemetry
 from silo_agent.telemetry.heightmap_codec import encode_heightmap
@@ -46,12 +52,25 @@ def _emit(topic: str, env: Envelope) -> None:
     print(json.dumps({"topic": topic, **env.model_dump()}), flush=True)
 
 
+def _locked(config: Config, why: str) -> StateLock | None:
+    """The lock `run` holds on the outbox and the audit directory, taken; None, after one
+    line saying so and `why`, while an agent holds it (it owns the outbox: two processes on
+    one would send the same rows, and opening it passes the agent's Last Will seq)."""
+    lock = StateLock.of(config)
+    try:
+        lock.acquire()
+    except StateLocked as exc:
+        fail(f"{exc}; {why}", FAILURE)
+        return None
+    return lock
+
+
 def _send(telemetry: Telemetry, timeout: float, linger: float = 0.0) -> int:
     telemetry.start()
     end = time.monotonic() + timeout
-    while telemetry.outbox.size()[0] and time.monotonic() < end:
+    while telemetry.unsent() and time.monotonic() < end:
         time.sleep(0.05)
-    pending = telemetry.outbox.size()[0]
+    pending = telemetry.unsent()
     if not pending and linger > 0:
         print("drained", flush=True)
         time.sleep(linger)
@@ -100,7 +119,23 @@ def publish(args: argparse.Namespace) -> int:
         heightmap = _heightmap(args.heightmap, summary.scan_id) if args.heightmap else None
     except ValueError as exc:
         return fail(str(exc), DATA_ERROR)
-    telemetry = Telemetry.from_config(config)
+    lock = _locked(config, "the running agent sends the outbox itself: stop it to publish by hand")
+    if lock is None:
+        return FAILURE
+    try:
+        return _publish(args, config, summary, event, heightmap)
+    finally:
+        lock.release()
+
+
+def _publish(
+    args: argparse.Namespace,
+    config: Config,
+    summary: ScanSummary,
+    event: AlarmEvent | None,
+    heightmap: HeightMap | None,
+) -> int:
+    telemetry = Telemetry.from_config(config, by_hand="publish")
     for k in range(args.repeat):
         one = summary
         if args.repeat > 1:
@@ -116,7 +151,13 @@ def publish(args: argparse.Namespace) -> int:
 
 def flush(args: argparse.Namespace) -> int:
     config = load_config(args.config, service=True)
-    return _send(Telemetry.from_config(config), args.timeout, args.linger)
+    lock = _locked(config, "the running agent sends the outbox itself")
+    if lock is None:
+        return FAILURE
+    try:
+        return _send(Telemetry.from_config(config, by_hand="flush"), args.timeout, args.linger)
+    finally:
+        lock.release()
 
 
 def schemas(args: argparse.Namespace) -> int:

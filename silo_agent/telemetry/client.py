@@ -82,13 +82,19 @@ class Telemetry:
         *,
         version: str = __version__,
         expire_after_s: int | None = None,
+        by_hand: str | None = None,
     ) -> None:
-        """`expire_after_s`: how long HA keeps showing a reading without a new one."""
+        """`expire_after_s`: how long HA keeps showing a reading without a new one.
+        `by_hand`: the command (`publish`, `flush`) that sends the outbox by hand, as client
+        `<client_id>-<command>`, the outbox's rows only (`transport.Transport`): never the
+        agent's client id, nor its status, alarm states or sessions."""
         self.cfg = cfg
         self.silo_id = silo_id
         self.version = version
         self.base = f"{cfg.topic_prefix}/{silo_id}"
         self.client_id = cfg.client_id or f"silo-agent-{silo_id}"
+        if by_hand is not None:
+            self.client_id += f"-{by_hand}"
         credentials = Credentials.from_config(cfg)  # a bad one fails before the outbox opens
         self.outbox = Outbox(
             cfg.outbox_path,
@@ -128,6 +134,7 @@ class Telemetry:
             subscriptions=self.commands.subscriptions(),
             session=self.session,
             on_message=self.commands.dispatch,
+            by_hand=by_hand is not None,
         )
         self._links = self.transport.links
         self._thread: threading.Thread | None = None
@@ -188,12 +195,13 @@ class Telemetry:
         )
 
     @classmethod
-    def from_config(cls, config: Config) -> Telemetry:
+    def from_config(cls, config: Config, by_hand: str | None = None) -> Telemetry:
         return cls(
             config.mqtt,
             config.silo.id,
             [c.serial for c in config.cameras],
             expire_after_s=stale_after_s(config.schedule, config.silo.timezone),
+            by_hand=by_hand,
         )
 
     def topic(self, suffix: str) -> str:
@@ -369,6 +377,11 @@ class Telemetry:
                 "alarms": {k: v.to_json() for k, v in self.state.alarm_states.items()},
                 "events": list(self.alarm_events),
             }
+
+    def unsent(self) -> int:
+        """Messages in the outbox for this process's links to send (by hand: not the
+        Sparkplug rows, which wait for the agent)."""
+        return self.outbox.size(tuple(k for link in self._links for k in link.kinds))[0]
 
     def status(self) -> StatusPayload:
         """What `P/status` would say now (state online), e.g. for a health check."""

@@ -710,10 +710,14 @@ class Outbox:
         """Forget pending messages of a kind that is no longer sent (not counted as drops)."""
         self._write(lambda: self._db.execute("DELETE FROM messages WHERE kind = ?", (kind,)))
 
-    def size(self) -> tuple[int, int]:
-        """(pending messages, pending bytes)."""
+    def size(self, kinds: tuple[str, ...] | None = None) -> tuple[int, int]:
+        """(pending messages, pending bytes), of the given kinds."""
+        where = ""
+        args: tuple[str, ...] = ()
+        if kinds is not None:
+            where, args = f" WHERE kind IN ({', '.join('?' * len(kinds))})", kinds
         with self._lock:
             count, size = self._db.execute(
-                "SELECT COUNT(*), COALESCE(SUM(size), 0) FROM messages"
+                f"SELECT COUNT(*), COALESCE(SUM(size), 0) FROM messages{where}", args
             ).fetchone()
         return int(count), int(size)

@@ -10,6 +10,11 @@ Sparkplug runs on a second MQTT connection because MQTT allows one Last Will per
 and both `P/status` = offline and the Sparkplug NDEATH must be wills. The NDEATH will of each
 attempt carries the outbox's current bdSeq; only a CONNACK accepting the session advances it,
 so failed attempts reuse it and the sessions a host sees are numbered one apart.
+
+`by_hand` (`silo-agent publish` and `flush`): the JSON link alone, sending outbox rows and
+nothing else: no Last Will, no `stopped`, no session messages, no subscriptions. `P/status`,
+the alarm states, Home Assistant and the Sparkplug session are the agent's; the Sparkplug rows
+wait in the outbox for its next session, which births before it sends them.
 """
 
 from __future__ import annotations
@@ -101,8 +106,10 @@ class Transport:
         subscriptions: Subscriptions,
         session: SessionHooks,
         on_message: Callable[[Link, mqtt.MQTTMessage], None],
+        by_hand: bool = False,
     ) -> None:
         self.cfg = cfg
+        self.by_hand = by_hand
         self.client_id = client_id
         self.credentials = credentials
         self.outbox = outbox
@@ -114,10 +121,10 @@ class Transport:
         self.pump = Pump(cfg, outbox, session.outbox_changed)
         self.stopping = threading.Event()
         self.links = [Link(JSON_LINK, (KIND_JSON, KIND_BINARY))]
-        if cfg.sparkplug.enabled:
-            self.links.append(Link(SPARKPLUG_LINK, (KIND_SPARKPLUG,)))
-        else:  # left over from a run with Sparkplug on: nobody would ever send them
+        if not cfg.sparkplug.enabled:  # rows left by a run with Sparkplug on: never to be sent
             outbox.discard_kind(KIND_SPARKPLUG)
+        elif not by_hand:  # by hand they wait for the agent's Sparkplug session
+            self.links.append(Link(SPARKPLUG_LINK, (KIND_SPARKPLUG,)))
         for link in self.links:
             link.delay = cfg.reconnect_min_s
 
@@ -174,6 +181,9 @@ class Transport:
 
     def _serve(self, link: Link) -> None:
         """Per loop turn on a connected link: session messages, then outbox rows."""
+        if self.by_hand:
+            self.pump.send(link)
+            return
         if link.name == JSON_LINK and self.outbox.near_will_seq(link.will_seq):
             # the session is about to use the seq of its own Last Will: a new session arms
             # a higher one
@@ -202,7 +212,8 @@ class Transport:
                 keyfile=str(tls.key_file) if tls.key_file else None,
                 keyfile_password=self.credentials.key_password,
             )
-        self._arm_will(link, client)
+        if not self.by_hand:
+            self._arm_will(link, client)
         client.on_connect = lambda c, u, f, rc, p: self._on_connect(link, rc, p)
         client.on_disconnect = lambda c, u, f, rc, p: self._on_disconnect(link, rc)
         client.on_publish = lambda c, u, mid, rc, p: self.pump.acknowledged(link, mid, rc)
@@ -244,7 +255,7 @@ class Transport:
         if client is not None:
             client.disconnect()
         was_connected = link.connected
-        if was_connected and link.name == JSON_LINK:
+        if was_connected and link.name == JSON_LINK and not self.by_hand:
             self.outbox.pass_will()
         if was_connected and link.refused is None:  # not a reconnect of our own choosing
             self.pump.session_ended(link)
@@ -294,8 +305,9 @@ class Transport:
         client = link.client
         assert client is not None
         log.info("connected to the broker", link=link.name, host=self.cfg.host, port=self.cfg.port)
-        client.subscribe(self.subscriptions[link.name])
-        self.session.connected(link)
+        if not self.by_hand:
+            client.subscribe(self.subscriptions[link.name])
+            self.session.connected(link)
 
     def _on_disconnect(self, link: Link, reason: mqtt.ReasonCode) -> None:
         if link.connected and reason.is_failure:
@@ -313,7 +325,7 @@ class Transport:
         for link in self.links:
             if link.client is None or not link.connected:
                 continue
-            if link.name == JSON_LINK:
+            if link.name == JSON_LINK and not self.by_hand:
                 payload = self.session.status("stopped", self.outbox.next_envelope())
                 stopped = (link, link.publish_direct(self.status_topic, payload, retain=True))
                 waiting.append(stopped)
