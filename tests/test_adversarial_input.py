@@ -375,24 +375,12 @@ def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
     tmp_path: Path, broker, collector_factory
 ):
     """Real tmpfs out of inodes: the raw scan fits, its result.json / height map do not."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=20m,nr_inodes=64", "tmpfs", str(disk)], check=True
-    )
-    try:
+    from tests.support.faults import leave_inodes, tmpfs
+
+    with tmpfs(tmp_path / "disk", "20m,nr_inodes=64") as disk:
         scans = disk / "scans"
         scans.mkdir()
-        fillers = []
-        try:
-            while True:
-                fillers.append(disk / f"filler-{len(fillers)}")
-                fillers[-1].touch()
-        except OSError as exc:
-            assert exc.errno == 28  # ENOSPC: out of inodes
-            fillers.pop()
-        for path in fillers[:4]:  # room for the raw scan: staging dir, 2 clouds, scan.json
-            path.unlink()
+        leave_inodes(disk, 4)  # room for the raw scan: staging dir, 2 clouds, scan.json
         config = write_config(
             tmp_path / "agent.toml", broker.port, tmp_path, audit={"directory": str(scans)}
         )
@@ -411,8 +399,6 @@ def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
         (alarm,) = [validate_json(m.payload) for m in col.on(f"{BASE}/alarm")]
         assert (alarm["type"], alarm["state"]) == ("cache", "raised")
         assert alarm["scan_id"] == finished["scan_id"]
-    finally:
-        subprocess.run(["umount", str(disk)], check=True)
 
 
 # ---------------------------------------------------------------- service

@@ -354,20 +354,6 @@ def test_a_report_on_a_full_disk_leaves_the_previous_one_whole(tmp_path: Path, s
         assert sorted(p.name for p in small.iterdir()) == ["filler", "r.html"]
 
 
-def _leave_inodes(disk: Path, free: int) -> None:
-    """Take every inode of the tmpfs `disk` but `free` of them (empty filler files)."""
-    fillers = []
-    try:
-        while True:
-            fillers.append(disk / f"inode-{len(fillers)}")
-            fillers[-1].touch()
-    except OSError as exc:
-        assert exc.errno == 28  # ENOSPC: out of inodes
-        fillers.pop()
-    for path in fillers[:free]:
-        path.unlink()
-
-
 @pytest.mark.parametrize("case", ["blocks, new --out", "blocks, --out of the user's", "inodes"])
 def test_a_scan_on_a_full_disk_is_one_line_and_leaves_no_scan(tmp_path: Path, case: str) -> None:
     """`scan --out` on a file system that is full: one line naming the scan directory it could
@@ -376,7 +362,7 @@ def test_a_scan_on_a_full_disk_is_one_line_and_leaves_no_scan(tmp_path: Path, ca
     none for result.json the raw scan (the measurement) is kept whole, for `process` later.
     It had left the empty directory behind, its line naming neither the path nor (for the
     result) the OS error."""
-    from tests.support.faults import fill, tmpfs
+    from tests.support.faults import fill, leave_inodes, tmpfs
 
     demo = Path(__file__).resolve().parent.parent / "config" / "demo.toml"
     size = "20m,nr_inodes=64" if case == "inodes" else "64k"
@@ -388,7 +374,7 @@ def test_a_scan_on_a_full_disk_is_one_line_and_leaves_no_scan(tmp_path: Path, ca
             (out / "note.txt").write_text("the user's\n")
         before = sorted(str(p.relative_to(small)) for p in small.rglob("*"))
         if case == "inodes":  # for the raw scan: --out, its parent, staging, 4 clouds, scan.json
-            _leave_inodes(small, 2 + 1 + 4 + 1)
+            leave_inodes(small, 2 + 1 + 4 + 1)
             before = sorted(p.name for p in small.iterdir())
         else:
             fill(small)

@@ -16,24 +16,11 @@ from silo_agent.config import MetricsConfig
 from silo_agent.telemetry.prometheus import Metrics
 from tests.support.agent import Daemon, write_config
 from tests.support.mqtt_broker import free_port
+from tests.test_bins import SUMMARY  # a bin's valid result
 from tests.test_web import wait_js
 
 BIN_METRICS = ("silo_agent_last_fill_ratio", "silo_agent_last_headspace_meters")
 BIN_ROWS = ("fill-row", "headspace-row", "capacity-row")
-SUMMARY = {
-    "scan_id": "s1",
-    "captured_at": "2026-01-01T00:00:00Z",
-    "volume_m3": 100.0,
-    "mass_t": 77.0,
-    "coverage": 0.9,
-    "grid_step_m": 0.05,
-    "level": {"min": 1.0, "mean": 1.5, "max": 2.0},
-    "valid": True,
-    "capacity_m3": 400.0,
-    "fill_ratio": 0.25,
-    "headspace_m": 5.0,
-    "headspace_mean_m": 5.5,
-}
 
 
 def scrape(port: int) -> dict[str, list[float]]:

@@ -41,6 +41,21 @@ def fill(directory: Path) -> Path:
     return filler
 
 
+def leave_inodes(disk: Path, free: int) -> None:
+    """Take every inode of the tmpfs `disk` (mounted with nr_inodes) but `free` of them, with
+    empty filler files."""
+    fillers = []
+    try:
+        while True:
+            fillers.append(disk / f"inode-{len(fillers)}")
+            fillers[-1].touch()
+    except OSError as exc:
+        assert exc.errno == 28  # ENOSPC: out of inodes
+        fillers.pop()
+    for path in fillers[:free]:
+        path.unlink()
+
+
 @contextlib.contextmanager
 def ext4(directory: Path, image: Path, size_mb: int = 16) -> Iterator[Path]:
     """An ext4 image loop-mounted on `directory` with errors=remount-ro, so that
