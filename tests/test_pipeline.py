@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -22,6 +21,7 @@ from silo_agent.storage.audit import AuditCache
 from silo_agent.telemetry.prometheus import Metrics
 from silo_agent.telemetry.publisher import MemoryPublisher
 from tests.support.agent import SILO, write_config
+from tests.support.faults import leave_inodes, tmpfs
 
 UNUSED_PORT = 9  # the pipeline never connects: publishing goes to memory
 
@@ -106,30 +106,9 @@ def test_a_scan_given_up_on_publishes_nothing(tmp_path: Path) -> None:
 
 @pytest.fixture
 def tiny_disk(tmp_path: Path) -> Iterator[Path]:
-    """A real tmpfs with 64 inodes, all but `free` of them taken (see `leave`)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=20m,nr_inodes=64", "tmpfs", str(disk)], check=True
-    )
-    try:
+    """A real tmpfs with 64 inodes (a test takes all but a few: `leave_inodes`)."""
+    with tmpfs(tmp_path / "disk", "20m,nr_inodes=64") as disk:
         yield disk
-    finally:
-        subprocess.run(["umount", str(disk)], check=True)
-
-
-def _leave(disk: Path, free: int) -> None:
-    """Fill `disk` with empty files until it is out of inodes, then free `free` of them."""
-    fillers = []
-    try:
-        while True:
-            fillers.append(disk / f"filler-{len(fillers)}")
-            fillers[-1].touch()
-    except OSError as exc:
-        assert exc.errno == 28  # ENOSPC
-        fillers.pop()
-    for path in fillers[:free]:
-        path.unlink()
 
 
 def test_a_full_disk_publishes_uncached_and_raises_the_cache_alarm(
@@ -138,7 +117,7 @@ def test_a_full_disk_publishes_uncached_and_raises_the_cache_alarm(
     scans = tiny_disk / "scans"
     scans.mkdir()
     config = _config(tmp_path, audit={"directory": str(scans)})
-    _leave(tiny_disk, 0)
+    leave_inodes(tiny_disk, 0)
     pipeline, publisher = _pipeline(config)
     outcome = _run(pipeline)
     assert outcome.outcome == "ok" and outcome.directory is None  # published, not kept
@@ -153,7 +132,7 @@ def test_a_result_lost_to_a_full_disk_raises_the_cache_alarm(
     scans = tiny_disk / "scans"
     scans.mkdir()
     config = _config(tmp_path, audit={"directory": str(scans)})
-    _leave(tiny_disk, 4)  # the raw scan fits (staging dir, 2 clouds, scan.json), not its result
+    leave_inodes(tiny_disk, 4)  # the raw scan fits (staging, 2 clouds, scan.json), not its result
     pipeline, publisher = _pipeline(config)
     outcome = _run(pipeline)
     assert outcome.outcome == "ok" and outcome.directory is not None
@@ -178,7 +157,7 @@ def test_the_alarm_state_is_saved_on_a_full_disk_by_evicting_an_old_scan(
     assert baseline is not None and baseline != old.scan_id  # the newer scan is the baseline
     pipeline.state = dataclasses.replace(pipeline.state, baseline_scan_id=new.scan_id)
     (scans / "alarm-state.json").unlink()  # the state as it must be saved again
-    _leave(tiny_disk, 0)
+    leave_inodes(tiny_disk, 0)
     pipeline._save_state()
     saved = json.loads((scans / "alarm-state.json").read_text())
     assert saved == json.loads(json.dumps(pipeline.state.to_json()))
