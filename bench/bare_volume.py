@@ -112,6 +112,8 @@ def bare_volume(directory: Path, step: float) -> tuple[float, int]:
 
 
 def main() -> None:
+    if len(sys.argv) < 3 or sys.argv[1].startswith("-"):  # no argparse: a bare process
+        sys.exit(__doc__.split("\n\n")[1])
     step = float(sys.argv[1])
     for directory in map(Path, sys.argv[2:]):
         volume, cells = bare_volume(directory, step)

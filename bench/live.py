@@ -71,11 +71,13 @@ def timed(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--maps", type=int, default=12)
+    parser.add_argument("--maps", type=int, default=12, help="maps to time (at least 2)")
     parser.add_argument("--cpu", type=int, default=0, help="pin to this CPU (-1: do not pin)")
     parser.add_argument("--note", default="", help="a provenance line, e.g. machine load")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if args.maps < 2:  # the first map starts the session; the others are timed
+        parser.error(f"--maps: at least 2, not {args.maps}")
     if args.cpu >= 0:
         pinned(args.cpu)
     rig = RobotRig()

@@ -272,6 +272,8 @@ def main() -> None:
     parser.add_argument("--note", default="", help="a provenance line, e.g. machine load")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if args.scans < 20:  # the growth is fitted over the second half, after the warm-up
+        parser.error(f"--scans: at least 20, not {args.scans}")
     work = Path(tempfile.mkdtemp(prefix="silo-soak-"))
     try:
         rows = soak(args.scans, args.cache_mb, args.cpu, work)

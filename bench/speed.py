@@ -303,7 +303,7 @@ IMPORT_STEPS = [
     "import silo_agent.cli, parse the arguments",
     "import numpy and pydantic",
     "import the config models, the scan reader and service (silo_agent.config, .scan, ...)",
-    "import silo_agent.reconstruct (numpy only: no scipy on the scan path)",
+    "import silo_agent.reconstruct (with scipy.ndimage, its filters)",
     "import silo_agent.detect",
 ]
 READ_STEP = "read the scan (4 PLYs, 1.6 M points; manifest checked)"

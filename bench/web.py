@@ -405,6 +405,7 @@ def main() -> None:
     parser.add_argument("--interval", type=float, default=4.0, help="seconds between scans")
     parser.add_argument("--visits", type=int, default=3, help="first visits, each a new server")
     parser.add_argument("--note", default="", help="a provenance line, e.g. machine load")
+    parser.add_argument("--cpu", type=int, default=0, help="the agent's CPU (chromium: the other)")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     lines = header("The operator's page", args.note)
@@ -426,25 +427,26 @@ def main() -> None:
         "",
     ]
     if args.rounds > 0:
-        lines += scan_section(args.rounds, args.scans, args.interval)
+        lines += scan_section(args.rounds, args.scans, args.interval, args.cpu)
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
         args.out.write_text(text)
 
 
-def scan_section(rounds_each: int, scans: int, interval: float) -> list[str]:
+def scan_section(rounds_each: int, scans: int, interval: float, cpu: int) -> list[str]:
     """Seconds per scan of a running daemon with the page closed and open, alternated."""
     rounds: dict[str, list[list[float]]] = {"closed ([web] off)": [], "open": []}
+    other = 1 - cpu  # the machine's other core (2 cores)
     for _round in range(rounds_each):  # alternated: a change in the machine's load hits both
-        rounds["closed ([web] off)"].append(scans_with_page(False, scans, interval, 0, 1))
-        rounds["open"].append(scans_with_page(True, scans, interval, 0, 1))
+        rounds["closed ([web] off)"].append(scans_with_page(False, scans, interval, cpu, other))
+        rounds["open"].append(scans_with_page(True, scans, interval, cpu, other))
     lines = [
         "## A scan with the page open",
         "",
         "`silo-agent run`, four simulated D455s 848x480, 2 cm grid, a scan every "
-        f"{interval:g} s, the agent pinned to CPU 0; with the page: [web] on and "
-        "chromium (CPU 1) showing it, refetching the map, history and scan list after every "
+        f"{interval:g} s, the agent pinned to CPU {cpu}; with the page: [web] on and "
+        f"chromium (CPU {other}) showing it, refetching the map, history and scan list after every "
         f"scan. {rounds_each} rounds of {scans} scans each way, alternated. Seconds per "
         "scan (all stages, from each kept result), the first scan of a run (it builds the "
         "simulated world) left out.",
