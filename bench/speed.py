@@ -433,7 +433,8 @@ def _import_tables(scan_dir: Path, baseline: tuple[str, Path] | None, runs: int 
         "",
         "Self time of every module imported, summed per top-level package (`numpy.f2py` apart:"
         " numpy loads it lazily, and scipy 1.17's array-API layer, which every scipy submodule"
-        " imports, touches it; the scan path no longer imports scipy). Packages under 10 ms in"
+        " imports, touches it; the scan path imports scipy.ndimage for its filters). Packages"
+        " under 10 ms in"
         " every column are in the total only."
         + (
             ""
