@@ -205,14 +205,19 @@ def _draw_footprints(ax: Axes, hm: HeightMap, cameras: Sequence[CameraView]) -> 
 
 def _draw_piles(ax: Axes, piles: Sequence[dict[str, Any]]) -> None:
     from matplotlib.patches import Circle
+    from matplotlib.patheffects import withStroke
 
+    # outlined in black: a pile's peak is the map's brightest yellow, where white alone is lost
+    outline = [withStroke(linewidth=2.5, foreground="black")]
     for pile in piles:
         peak = pile.get("peak") or pile.get("centroid") or {}
         if "x" not in peak or "y" not in peak:
             continue
         radius = math.sqrt(max(float(pile.get("footprint_m2") or 0.0), 0.0) / math.pi)
         ax.add_patch(Circle((peak["x"], peak["y"]), radius, fill=False, ec="white", lw=1.2, ls=":"))
-        ax.plot([peak["x"]], [peak["y"]], marker="+", markersize=10, color="white")
+        ax.plot(
+            [peak["x"]], [peak["y"]], marker="+", markersize=10, color="white", path_effects=outline
+        )
         ax.annotate(
             f"#{pile.get('id', '?')}",
             (peak["x"], peak["y"]),
@@ -220,6 +225,7 @@ def _draw_piles(ax: Axes, piles: Sequence[dict[str, Any]]) -> None:
             textcoords="offset points",
             fontsize=8,
             color="white",
+            path_effects=outline,
         )
 
 
