@@ -86,3 +86,47 @@ def test_the_bin_figures_are_exported_while_the_last_valid_result_has_them() -> 
         assert not any(families.get(name) for name in BIN_METRICS)
     finally:
         metrics.close()
+
+
+@pytest.mark.slow
+def test_a_scan_that_gave_no_result_is_named_above_the_last_results_figures(
+    tmp_path: Path, broker, browser
+) -> None:
+    """A scan whose cameras all failed is kept nowhere (no directory, no result): the page
+    names it, its time and reason, above the figures of the scan before, and takes the line
+    away with the next result. It had gone on showing the older figures as the latest, valid,
+    with nothing saying the last scan failed."""
+    web_port = free_port()
+    good = write_config(
+        tmp_path / "good.toml", broker.port, tmp_path, web={"enabled": True, "port": web_port}
+    )
+    first = Daemon(good, tmp_path, "--scans", "1")
+    assert first.wait(120) == 0
+    (kept,) = [e["scan_id"] for e in first.log() if e.get("event") == "scan finished"]
+    broken = write_config(
+        tmp_path / "broken.toml",
+        broker.port,
+        tmp_path,
+        cameras=(("broken", None),),
+        web={"enabled": True, "port": web_port},
+        schedule={"interval_s": 3600, "scan_at_start": True},
+    )
+    agent = Daemon(broken, tmp_path)
+    try:
+        (failed,) = agent.wait_log("scan failed")
+        browser.get(f"http://127.0.0.1:{web_port}/")
+        wait_js(browser, "!document.getElementById('last-failure').hidden")
+        line = browser.find_element("id", "last-failure").text
+        assert line.startswith(f"Last scan {failed['scan_id']} (") and failed["scan_id"] != kept
+        assert "gave no result: capture: no camera delivered a cloud" in line
+        assert browser.find_element("id", "scan-id").text == kept  # the figures: the one before
+    finally:
+        agent.kill()
+    agent = Daemon(good, tmp_path)  # a result again: the line goes
+    try:
+        (finished,) = agent.wait_log("scan finished")
+        browser.get(f"http://127.0.0.1:{web_port}/")
+        wait_js(browser, f"document.body.dataset.scanId === '{finished['scan_id']}'")
+        assert browser.find_element("id", "last-failure").get_attribute("hidden") is not None
+    finally:
+        agent.kill()

@@ -224,6 +224,7 @@ class Telemetry:
             envs.append(self._enqueue("heightmap", lambda _e: blob, retain=True, kind=KIND_BINARY))
         with self.state.lock:
             self.state.last_scan_id = summary.scan_id
+            self.state.last_failure = None
             self.state.status_dirty = True
         if self.spb.enabled:
             with self.state.lock:
@@ -239,6 +240,11 @@ class Telemetry:
         env = self._enqueue("scan", lambda e: scan_payload(e, summary).to_bytes())
         with self.state.lock:
             self.state.last_scan_id = summary.scan_id
+            self.state.last_failure = {
+                "scan_id": summary.scan_id,
+                "captured_at": summary.captured_at,
+                "reason": summary.invalid_reason,
+            }
             self.state.status_dirty = True
         return env
 
@@ -370,12 +376,15 @@ class Telemetry:
         self._live_watchers.append(callback)
 
     def snapshot(self) -> dict[str, Any]:
-        """What the operator's page shows of the node: cameras, alarm states, recent events."""
+        """What the operator's page shows of the node: cameras, alarm states, recent events,
+        and the last scan if it gave no result (none is kept to show: the page names it above
+        the last result's figures)."""
         with self.state.lock:
             return {
                 "cameras": [c.model_dump(mode="json") for c in self.state.cameras.values()],
                 "alarms": {k: v.to_json() for k, v in self.state.alarm_states.items()},
                 "events": list(self.alarm_events),
+                "last_failure": self.state.last_failure,
             }
 
     def unsent(self) -> int:

@@ -65,6 +65,8 @@ class NodeState:
     expire_after_s: int | None  # how long HA keeps showing a reading without a new one
     lock: threading.Lock = field(default_factory=threading.Lock)
     last_scan_id: str | None = None
+    # the last scan, if it gave no result: {scan_id, captured_at, reason} (the page says so)
+    last_failure: dict[str, str | None] | None = None
     alarm_types: list[str] = field(default_factory=lambda: list(ALARM_TYPES))
     alarm_states: dict[str, AlarmEvent] = field(
         default_factory=lambda: {t: idle_alarm(t) for t in ALARM_TYPES}

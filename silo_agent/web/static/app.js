@@ -159,18 +159,37 @@ async function showScans() {
   }
 }
 
+// the last scan, when it gave no result: it is in no list, so it is named above the figures
+// of the last scan that did
+function showFailure(failure) {
+  const line = $("last-failure");
+  line.hidden = !failure;
+  line.dataset.scanId = failure ? failure.scan_id : "";
+  if (failure) {
+    line.textContent = `Last scan ${failure.scan_id} (${failure.captured_at}) gave no result: ` +
+      `${failure.reason || "?"}. The figures below are from the scan before it.`;
+  }
+}
+
 async function apply(state) {
   text("silo-id", state.silo_id);
+  showFailure(state.last_failure);
   showLatest(state.latest);
   showAlarms(state);
-  const scanId = state.latest ? state.latest.published.scan_id : null;
-  if (scanId !== shownScan) {
-    shownScan = scanId;
-    if (scanId !== null) await showMap(scanId);
-    await Promise.all([showHistory(), showScans()]);
-  }
-  showCameras(state);
+  showCameras(state);  // with the figures, not after the pictures: both of one scan
   showLive(state.live || {});
+  const scanId = state.latest ? state.latest.published.scan_id : null;
+  $("map").hidden = scanId === null;  // no broken picture before the first scan
+  if (scanId !== shownScan) {
+    try {  // marked shown once drawn: a fetch that fails (the agent restarting) is retried
+      if (scanId !== null) await showMap(scanId);
+      await Promise.all([showHistory(), showScans()]);
+      shownScan = scanId;
+      showCameras(state);  // again, with the new map's points and coverage per camera
+    } catch (error) {
+      console.warn("scan not drawn yet, retried with the next state", error);
+    }
+  }
   document.body.dataset.scanId = scanId || "";
 }
 
