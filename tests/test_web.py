@@ -485,3 +485,27 @@ def test_library_log_records_are_json_lines_too() -> None:
     record = json.loads(lines[0])
     assert record["logger"] == "uvicorn.error" and record["level"] == "error"
     assert "ZeroDivisionError" in record["exception"]
+
+
+@pytest.mark.slow
+def test_a_degraded_scan_is_marked_in_the_scan_list(tmp_path: Path, broker, browser) -> None:
+    """A scan one of whose cameras failed reads "valid · degraded" in the scan list too, as in
+    Latest scan (it read a green "valid" there)."""
+    web_port = free_port()
+    config = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        cameras=(("sim-A2", "A2"), ("broken", None)),
+        web={"enabled": True, "port": web_port},
+    )
+    agent = Daemon(config, tmp_path)
+    try:
+        (finished,) = agent.wait_log("scan finished")
+        browser.get(f"http://127.0.0.1:{web_port}/")
+        row = f"#scans tr[data-scan-id='{finished['scan_id']}']"
+        wait_js(browser, f'document.querySelector("{row}")')
+        result = browser.find_element("css selector", f"{row} td:nth-child(5)")
+        assert result.text == "valid · degraded" and result.get_attribute("class") == "bad"
+    finally:
+        agent.kill()

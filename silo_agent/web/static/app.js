@@ -149,7 +149,9 @@ async function showScans() {
     cell(row, scan.captured_at);
     cell(row, fixed(scan.volume_m3, 3));
     cell(row, fixed(scan.mass_t, 3));
-    cell(row, !scan.has_result ? "no result" : scan.valid ? "valid" : "invalid", scan.valid ? "good" : "bad");
+    const result = !scan.has_result ? "no result" : scan.valid ? "valid" : "invalid";
+    const degraded = scan.has_result && scan.degraded;  // a camera failed: marked as in Latest scan
+    cell(row, result + (degraded ? " · degraded" : ""), scan.valid && !degraded ? "good" : "bad");
     const links = row.insertCell();
     if (scan.has_result) {
       links.appendChild(link(row, `scans/${encodeURIComponent(scan.scan_id)}/report.html`, "report"));
