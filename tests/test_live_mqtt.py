@@ -14,12 +14,15 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
+import numpy as np
 import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from silo_agent.config import load_config
+from silo_agent.grid.grid import Grid
 from silo_agent.telemetry.heightmap_codec import (
     HeightMapFormatError,
     decode_heightmap,
@@ -246,5 +249,46 @@ def test_a_full_scan_pre_empts_live_and_live_resumes(tmp_path: Path, broker, lis
                 decode_live_heightmap(full.payload)
         finally:
             late.close()
+    finally:
+        agent.kill()
+
+
+@pytest.mark.slow
+def test_live_session_in_a_bin_without_a_region(tmp_path: Path, broker, listener):
+    """A `[silo.bin]` config gives no `[silo] region`: its wall is the region. The live path
+    read `region` itself (None), and every `{"on": true}` was refused with numpy's `cannot
+    reshape array of size 1 into shape (2)`; a 6 m bin inside the moving-robot bay runs."""
+    config = live_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        live={"rate_hz": 1.0, "grid_step_m": 0.05},
+        schedule={"scan_at_start": False},
+    )
+    text = config.read_text()
+    square = "region = [[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]]\n"
+    assert square in text
+    bin_table = "[silo.bin]\ndiameter_m = 6.0\ncentre = [0.0, 0.0]\neave_height_m = 2.8\n\n"
+    text = text.replace(square, "").replace("[reconstruction]", bin_table + "[reconstruction]", 1)
+    config.write_text(text)
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("agent started")
+        listener.online()
+        listener.command(b'{"on": true, "duration_s": 6, "request_id": "bin-1"}')
+        (accepted,) = listener.replies(1)
+        assert accepted["status"] == "accepted", accepted.get("error")
+        done = listener.replies(2, timeout=60)[1]
+        assert done["status"] == "done" and done["scan_id"] == accepted["scan_id"], done.get(
+            "error"
+        )
+        maps = [decode_live_heightmap(m.payload) for m in listener.on(LIVE)]
+        assert maps
+        heights = maps[-1].heightmap.heights
+        wall = Grid.over(load_config(config).silo.region_polygon(), 0.05)
+        assert heights.shape == wall.shape and wall.shape[0] >= 120  # the bin's 6 m wall
+        assert np.isnan(heights[0, 0]) and np.isnan(heights[-1, -1])  # outside the wall
+        rows, cols = heights.shape
+        assert np.isfinite(heights[rows // 2, cols // 2])  # the bin's centre is mapped
     finally:
         agent.kill()

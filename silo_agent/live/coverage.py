@@ -73,7 +73,7 @@ def surface_z(config: Config, views: list[CameraView], last_map: HeightMap | Non
 
 def good_views(config: Config, views: list[CameraView], z: float) -> tuple[np.ndarray, Grid]:
     """Per region cell (at level `z`), how many cameras see it within range and noise."""
-    grid = Grid.over(np.asarray(config.silo.region, dtype=float), CHECK_STEP_M)
+    grid = Grid.over(config.silo.region_polygon(), CHECK_STEP_M)  # `region` or the bin's wall
     xs, ys = grid.centres()
     points = np.stack([xs, ys, np.full(xs.shape, z)], axis=-1)
     limit = MAX_NOISE_SHARE * config.live.robot_min_height_m
@@ -111,9 +111,18 @@ def session_problem(
         return None
     limit_mm = MAX_NOISE_SHARE * config.live.robot_min_height_m * 1000
     sizes = sorted({f"{v.width}x{v.height}" for v in views})
-    return (
+    problem = (
         f"{len(views)} camera(s) at {', '.join(sizes)} cannot keep the robot out of the live "
         f"map: only {share:.0%} of the region (at z = {z:.2f} m) is seen by {MIN_VIEWS} cameras "
         f"with depth noise under {limit_mm:.0f} mm, {MIN_SHARE:.0%} needed; add cameras or "
         "raise their resolution"
     )
+    if any(c.source == "sim" for c in config.cameras if c.serial in serials):
+        from silo_agent.sim.robot import REGION_HALF_M
+
+        side = 2 * REGION_HALF_M
+        problem += (
+            f" (sim cameras watch the moving-robot scene, a {side:g} x {side:g} m bay around "
+            "(0, 0), whatever the config's bin or region: keep [silo] region within it)"
+        )
+    return problem

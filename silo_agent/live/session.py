@@ -133,7 +133,8 @@ class LiveSession:
         self.deadline = time.monotonic() + duration_s
         self.started = time.monotonic()
         site = config.silo
-        grid = Grid.over(np.asarray(site.region, dtype=float), config.live.grid_step_m)
+        # `region`, or a bin's wall (a bin config may give no `region`)
+        grid = Grid.over(site.region_polygon(), config.live.grid_step_m)
         self.map = LiveMap(grid, config.live, site.ceiling_z, start_map)
         self.stats = LiveStats()
         self._publish = publish
