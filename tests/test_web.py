@@ -206,6 +206,20 @@ def test_page_shows_what_the_agent_published(tmp_path: Path, broker, collector_f
                 )
                 == 2
             )
+        # clicked one after the other: the picture drawn is of the range marked (an answer
+        # overtaken by the later click had drawn a day under the marked "all")
+        answered = int(
+            browser.execute_script("return document.getElementById('history').dataset.answered")
+        )
+        for span in ("day", "week", "all"):
+            browser.find_element("css selector", f"button[data-range='{span}']").click()
+        wait_js(
+            browser,
+            f"Number(document.getElementById('history').dataset.answered) >= {answered + 3}",
+        )
+        assert browser.execute_script("return document.getElementById('history-all') !== null")
+        marked = browser.find_element("css selector", "button.on")
+        assert marked.get_attribute("data-range") == "all"
         rows_shown = browser.find_elements("css selector", "#scans tbody tr")
         assert len(rows_shown) == 2
         assert rows_shown[0].get_attribute("data-scan-id") == volume["scan_id"]

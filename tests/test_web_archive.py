@@ -228,3 +228,25 @@ def test_a_damaged_newest_result_is_listed_without_one_and_the_older_one_is_late
     json.dumps([r.volume_m3 for r in archive.records()], allow_nan=False)
     with pytest.raises(ScanNotFound):
         archive.summary(ids[2])
+
+
+def test_the_history_axis_covers_the_range_asked_for() -> None:
+    """A day or a week is the whole day or week up to now, whatever scans fall in it; `all`
+    is the scans' own span, an hour either side when they are closer than that (one scan's
+    week had been autoscaled to four years, scans seconds apart labelled bare seconds)."""
+    from datetime import UTC, datetime, timedelta
+
+    from silo_agent.web.pictures import history_limits
+
+    now = datetime(2026, 12, 4, 12, 0, tzinfo=UTC)
+    one = now - timedelta(hours=3)
+    for window in (timedelta(days=7), timedelta(days=1)):
+        low, high = history_limits(one, one, window, now)
+        assert low == now - window and now < high <= now + window / 20
+    hour = timedelta(hours=1)
+    assert history_limits(one, one + timedelta(seconds=3), None, now) == (
+        one - hour,
+        one + timedelta(seconds=3) + hour,
+    )
+    early = now - timedelta(days=30)
+    assert history_limits(early, one, None, now) == (early, one)

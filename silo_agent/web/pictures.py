@@ -15,11 +15,13 @@ import io
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from silo_agent.grid.heightmap import HeightMap
+from silo_agent.web.archive import HISTORY_RANGES
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -260,6 +262,24 @@ def map_png(
     return _render_png(fig, colour_cells(hm, layout), layout), layout
 
 
+HISTORY_PAD = timedelta(hours=1)  # each side of the scans of `all` when they are this close
+
+
+def history_limits(
+    first: datetime, last: datetime, window: timedelta | None, now: datetime
+) -> tuple[datetime, datetime]:
+    """The time axis of the history: the whole `window` (a day, a week) up to now, whatever
+    scans fall in it, and a little past; all scans for no window, padded when they span under
+    HISTORY_PAD (one scan's axis had been autoscaled to four years, scans seconds apart
+    labelled bare seconds)."""
+    if window is not None:  # a fortieth past now: the newest scan's marker is not cut in half
+        end = max(now, last)
+        return end - window, end + window / 40
+    if last - first < HISTORY_PAD:
+        return first - HISTORY_PAD, last + HISTORY_PAD
+    return first, last
+
+
 def history_svg(records: Sequence[ScanRecord], bulk_density: float | None, span: str) -> str:
     """Volume over time (mass on the right axis when the density is known) as SVG: one
     marker per scan, valid ones in group `history-valid`, invalid ones hollow in
@@ -269,6 +289,7 @@ def history_svg(records: Sequence[ScanRecord], bulk_density: float | None, span:
 
     fig = Figure(figsize=(11.0, 3.0), dpi=100, layout="constrained")
     ax = fig.add_subplot()
+    ax.set_gid(f"history-{span}")  # which range the picture is of, for a reader
     if records:
         times = mdates.date2num([r.captured_at for r in records])
         volumes = np.array([r.volume_m3 for r in records], dtype=float)
@@ -286,6 +307,13 @@ def history_svg(records: Sequence[ScanRecord], bulk_density: float | None, span:
             label="invalid",
         )
         ax.xaxis_date()
+        low, high = history_limits(
+            records[0].captured_at,
+            records[-1].captured_at,
+            HISTORY_RANGES[span],
+            datetime.now(UTC),
+        )
+        ax.set_xlim(mdates.date2num(low), mdates.date2num(high))
         locator = mdates.AutoDateLocator()
         ax.xaxis.set_major_locator(locator)
         ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))

@@ -128,11 +128,18 @@ async function showMap(scanId) {
 }
 
 async function showHistory() {
-  const response = await fetch(`api/history.svg?range=${span}`, { credentials: "same-origin" });
+  const wanted = span;
+  const response = await fetch(`api/history.svg?range=${wanted}`, { credentials: "same-origin" });
   if (!response.ok) return;
+  const svg = await response.text();
+  const answers = $("history").dataset;  // counted, drawn or dropped: a reader can wait on it
+  answers.answered = String(Number(answers.answered || 0) + 1);
+  // a range clicked since has its own request: an answer overtaken by it is dropped (a slow
+  // "day" had drawn over "all" while the "all" button stayed marked)
+  if (wanted !== span) return;
   const history = $("history");
-  history.innerHTML = await response.text();
-  history.dataset.range = span;
+  history.innerHTML = svg;
+  history.dataset.range = wanted;
   for (const button of document.querySelectorAll("[data-range]")) {
     button.classList.toggle("on", button.dataset.range === span);
   }
