@@ -221,6 +221,8 @@ function connected(ok) {
   const badge = $("connection");
   badge.textContent = ok ? "connected" : "reconnecting…";
   badge.classList.toggle("ok", ok);
+  // with the agent away the figures are as it last said them: shown faded, not as current
+  document.body.classList.toggle("stale", !ok);
 }
 
 // the first state at once, not after the event stream's first message; apply() draws each

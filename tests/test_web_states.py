@@ -1,7 +1,7 @@
-"""A silo without `[silo.bin]` has no fill, headspace or capacity: the operator's page (a real
-headless chromium on `silo-agent run`'s page) hides those rows and /metrics (the daemon's own
-endpoint, read with prometheus_client's parser) has no sample of them. Both had shown 0: the
-page "fill 0.0 %", the metrics `silo_agent_last_fill_ratio 0.0`, an empty silo to an operator."""
+"""The operator's page (a real headless chromium on `silo-agent run`'s page) and /metrics in
+the states an operator meets: a silo without `[silo.bin]` has no fill, headspace or capacity
+(both had shown 0: "fill 0.0 %", an empty silo); a scan that gave no result is named above the
+figures; the agent away fades the page until it is back."""
 
 from __future__ import annotations
 
@@ -128,5 +128,35 @@ def test_a_scan_that_gave_no_result_is_named_above_the_last_results_figures(
         browser.get(f"http://127.0.0.1:{web_port}/")
         wait_js(browser, f"document.body.dataset.scanId === '{finished['scan_id']}'")
         assert browser.find_element("id", "last-failure").get_attribute("hidden") is not None
+    finally:
+        agent.kill()
+
+
+@pytest.mark.slow
+def test_the_page_fades_while_the_agent_is_away_and_recovers(
+    tmp_path: Path, broker, browser
+) -> None:
+    """The agent stopped under an open page: the header says reconnecting and the panels
+    fade (they had stayed at full strength, the last figures read as current); started again
+    on the same port, the page reconnects by itself and shows the state unfaded."""
+    web_port = free_port()
+    config = write_config(
+        tmp_path / "agent.toml", broker.port, tmp_path, web={"enabled": True, "port": web_port}
+    )
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("scan finished")
+        browser.get(f"http://127.0.0.1:{web_port}/")
+        wait_js(browser, "document.getElementById('connection').textContent === 'connected'")
+        assert not browser.execute_script("return document.body.classList.contains('stale')")
+    finally:
+        agent.kill()
+    wait_js(browser, "document.body.classList.contains('stale')")
+    assert browser.find_element("id", "connection").text == "reconnecting…"
+    agent = Daemon(config, tmp_path)
+    try:
+        agent.wait_log("web page serving")
+        wait_js(browser, "!document.body.classList.contains('stale')")
+        assert browser.find_element("id", "connection").text == "connected"
     finally:
         agent.kill()
