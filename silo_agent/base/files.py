@@ -46,14 +46,23 @@ def read_regular(path: Path, limit: int) -> bytes:
     return raw
 
 
+def missing_directories(directory: Path) -> list[Path]:
+    """`directory` and those of its ancestors that do not exist yet, deepest first: what
+    creating it makes (and what a command that made them removes again if it writes nothing)."""
+    missing = []
+    while not directory.exists() and directory != directory.parent:
+        missing.append(directory)
+        directory = directory.parent
+    return missing
+
+
 def writable_directory_problem(directory: Path) -> str | None:
     """Why the agent could not create and write `directory`, or None. The nearest existing
     ancestor must be a directory the agent can create entries in (tried, and undone: nothing
     is left behind, so a command that then writes nothing leaves no trace)."""
-    existing = directory
     try:
-        while not existing.exists() and existing != existing.parent:
-            existing = existing.parent
+        missing = missing_directories(directory)
+        existing = missing[-1].parent if missing else directory
         if not existing.is_dir():
             return f"{existing} is not a directory"
     except OSError as exc:  # a name the file system cannot hold (ENAMETOOLONG)

@@ -10,6 +10,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from silo_agent.base.exits import CONFIG_ERROR, FAILURE, OK
+from silo_agent.base.files import missing_directories
 from silo_agent.cli.common import fail, load_config, output_directory_problem
 from silo_agent.detect import ModelError
 from silo_agent.service.scan_once import Stages, scan_once
@@ -25,7 +26,7 @@ def scan(args: argparse.Namespace) -> int:
     cache = AuditCache(audit, config.silo.id)
     if problem := output_directory_problem(cache.directory):  # before the cameras capture
         return fail(problem, FAILURE)
-    made = _missing(cache.directory)  # what writing the scan will create, deepest first
+    made = missing_directories(cache.directory)  # what writing the scan will create
     started = datetime.now(UTC)
     run = scan_once(config, cache, new_scan_id(config, started, cache.names()), started, Stages())
     for failure in run.capture.failures:
@@ -50,15 +51,6 @@ def scan(args: argparse.Namespace) -> int:
         degraded = " (degraded)" if run.capture.degraded else ""
         print(f"scan written to {run.directory}{degraded}")
     return OK
-
-
-def _missing(directory: Path) -> list[Path]:
-    """`directory` and its ancestors that do not exist yet, deepest first."""
-    missing = []
-    while not directory.exists() and directory != directory.parent:
-        missing.append(directory)
-        directory = directory.parent
-    return missing
 
 
 def _remove_empty(directories: list[Path]) -> None:
