@@ -126,6 +126,18 @@ BAD_CONFIGS = {
         lambda t: _replace(_config(t), "grid_step_m = 0.05", "grid_step_m = 0.002"),
         ["reconstruction.grid_step_m", "9,000,000 cells", "limit of 4,000,000"],
     ),
+    "live map grid too fine for the region": (  # check-config passed it; a session's start
+        # then stopped the agent (the live map past the cell limit, raised in its main loop)
+        lambda t: _append(
+            _replace(
+                _config(t),
+                "region = [[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]]",
+                "region = [[-8.0, -8.0], [8.0, -8.0], [8.0, 8.0], [-8.0, 8.0]]",
+            ),
+            "[live]\ngrid_step_m = 0.006",
+        ),
+        ["live.grid_step_m", "7,112,889 cells", "limit of 4,000,000"],
+    ),
     "camera translation beyond float32": (
         lambda t: _replace(
             _config(t),

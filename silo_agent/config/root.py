@@ -45,19 +45,21 @@ class Config(Strict):
 
     @model_validator(mode="after")
     def _grid_fits(self) -> Config:
-        rows, cols = grid_shape(self.silo.region_polygon(), self.reconstruction.grid_step_m)
-        cells = rows * cols
-        if cells > MAX_GRID_CELLS:
-            raise PydanticCustomError(
-                "config_key",
-                "the region at this step is {cells} cells, more than the limit of {limit}; "
-                "use a coarser grid_step_m",
-                {
-                    "key": "reconstruction.grid_step_m",
-                    "cells": f"{cells:,}",
-                    "limit": f"{MAX_GRID_CELLS:,}",
-                },
-            )
+        """The scans' grid and the live map's both within the cell limit: a live map past it
+        was refused only when a session started, and that stopped the agent."""
+        for key, step in (
+            ("reconstruction.grid_step_m", self.reconstruction.grid_step_m),
+            ("live.grid_step_m", self.live.grid_step_m),
+        ):
+            rows, cols = grid_shape(self.silo.region_polygon(), step)
+            cells = rows * cols
+            if cells > MAX_GRID_CELLS:
+                raise PydanticCustomError(
+                    "config_key",
+                    "the region at this step is {cells} cells, more than the limit of {limit}; "
+                    "use a coarser grid_step_m",
+                    {"key": key, "cells": f"{cells:,}", "limit": f"{MAX_GRID_CELLS:,}"},
+                )
         return self
 
     @model_validator(mode="after")
