@@ -21,10 +21,10 @@ from silo_agent.grid.smooth import masked_smooth
 from silo_agent.grid.volume import (
     _block_smooth,
     _kernel_share,
-    _smooth_sigma,
     clip_excess,
     counted_heights,
     integrate_counted,
+    smooth_sigma,
 )
 
 STEP = 0.04  # a 20 m square floor at 4 cm: 250 000 cells
@@ -90,7 +90,7 @@ def test_the_smooth_sigma_is_the_smoothings_own_at_every_step(step: float, cells
     impulse[cells // 2, cells // 2] = 1.0
     weights = _smooth_noise(grid, impulse)
     truth = per_cell * math.sqrt(float(np.sum(weights**2)))
-    model = _smooth_sigma(grid, np.full(grid.shape, density), np.ones(grid.shape, bool), SCALE_M)
+    model = smooth_sigma(grid, np.full(grid.shape, density), np.ones(grid.shape, bool), SCALE_M)
     assert model[cells // 2, cells // 2] == pytest.approx(truth, rel=0.15)
     assert model[cells // 2, cells // 2] == pytest.approx(0.5e-3, rel=0.15)  # any step
     # at the region's edge the kernel is cut in half: the half's squared weights over the
@@ -183,7 +183,7 @@ def test_the_smooth_sigma_is_its_blocks_given_to_their_cells() -> None:
     grid = Grid(origin=(0.0, 0.0), step=0.01, shape=(233, 187), inside=np.ones((233, 187)))
     region = rng.random(grid.shape) < 0.8
     information = np.where(rng.random(grid.shape) < 0.5, rng.random(grid.shape) * 1e8, 0.0)
-    got = _smooth_sigma(grid, information, region, SCALE_M)
+    got = smooth_sigma(grid, information, region, SCALE_M)
     # the former per-cell arithmetic: the blocks' means on every cell, then the sigma
     density = np.where(region, information, 0.0)
     both = np.stack([density, region.astype(np.float64)])

@@ -118,7 +118,9 @@ def analyse(
     found_robots = robots if onnx is not None else None
     if result.heightmap is None:
         return ScanAnalysis(result, [], found_robots)
-    surface = Surface.for_piles(result.heightmap, site.base, site.floor_z, detection.background_m)
+    surface = Surface.for_piles(
+        result.heightmap, site.base, site.floor_z, detection.background_m, result.information
+    )
     piles: list[Pile] = []
     if detection.geometric:
         piles += detect_piles(surface, detection)

@@ -27,6 +27,7 @@ from scipy import ndimage
 
 from silo_agent.config import DetectionConfig
 from silo_agent.detect.piles import Pile
+from silo_agent.grid.filters import block_means
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.smooth import masked_smooth
@@ -35,6 +36,7 @@ from silo_agent.grid.volume import (
     base_surface,
     counted_columns,
     denoised_columns,
+    smooth_sigma,
 )
 
 __all__ = ["Surface", "detect_piles", "detection_map", "grid_of", "relief"]
@@ -44,6 +46,12 @@ BASIN_SMOOTHING_M = 0.04  # Gaussian sigma of the surface the basins are traced 
 PEAK_SMOOTHING_M = 0.10  # sigma of the surface peaks and saddles are read on: D455 noise at
 # 3-5 m leaves bumps of several cm a few decimetres wide, which must not count as piles
 DETECTION_STEP_M = 0.02  # piles are found on blocks of cells up to this wide (`detection_map`)
+# a peak is its own pile only if it stands above the saddle by this many standard deviations of
+# the difference of two heights of the surface peaks are read on (the cameras' noise model,
+# `volume.smooth_sigma`): 1.5 left a noise peak on the far ring of the simulator's 18 m bin
+# from eight full-resolution eave cameras, 2 none on bin-18, bin-heap, hopper-heap, bin-side
+# (seeds 0-2); near the cameras min_prominence_m rules (docs/detection.md)
+NOISE_SIGMAS = 2.0
 
 
 def grid_of(heightmap: HeightMap) -> Grid:
@@ -244,16 +252,25 @@ def _basin_peaks(
 
 
 def _merge_low_peaks(
-    labels: np.ndarray, smooth: np.ndarray, min_prominence: float, min_separation_cells: float
+    labels: np.ndarray,
+    smooth: np.ndarray,
+    min_prominence: float,
+    min_separation_cells: float,
+    noise: np.ndarray | None = None,
 ) -> np.ndarray:
     """Merge each basin into its highest-saddle higher neighbour when its peak is less than
-    `min_prominence` above that saddle or closer than `min_separation_cells` to that
-    neighbour's peak; lowest peaks first (loops over basins, not cells)."""
+    `min_prominence` above that saddle (or NOISE_SIGMAS x sqrt(2) x `noise`, `smooth`'s noise
+    sigma, at the peak, if more) or closer than `min_separation_cells` to that neighbour's
+    peak; lowest peaks first (loops over basins, not cells)."""
     count = int(labels.max())
     if count < 2:
         return labels
     index = np.arange(1, count + 1)
     peaks, where = _basin_peaks(smooth, labels, count)
+    need = np.full(count, min_prominence)
+    if noise is not None:
+        np.maximum(need, NOISE_SIGMAS * np.sqrt(2.0) * noise[where[:, 0], where[:, 1]], out=need)
+    needed = dict(zip(index.tolist(), need.tolist(), strict=True))
     rank = {k: (float(p), k) for k, p in zip(index.tolist(), peaks, strict=True)}
     top = {k: w.astype(float) for k, w in zip(index.tolist(), where, strict=True)}
     neighbours: dict[int, dict[int, float]] = {k: {} for k in rank}
@@ -266,7 +283,7 @@ def _merge_low_peaks(
         if not higher:
             continue
         into, saddle = max(higher.items(), key=lambda item: item[1])
-        prominent = rank[k][0] - saddle >= min_prominence
+        prominent = rank[k][0] - saddle >= needed[k]
         apart = np.hypot(*(top[k] - top[into])) >= min_separation_cells
         if prominent and apart:
             continue
@@ -294,18 +311,30 @@ class Surface:
     )  # m³ per cell: the volume's columns (`counted` layer) or over the background
     xs: np.ndarray
     ys: np.ndarray
+    noise: np.ndarray | None = None  # `coarse`'s noise sigma per cell; None: not known
 
     @classmethod
     def of(
-        cls, heightmap: HeightMap, base: np.ndarray, floor_z: float, background_m: float | None
+        cls,
+        heightmap: HeightMap,
+        base: np.ndarray,
+        floor_z: float,
+        background_m: float | None,
+        information: np.ndarray | None = None,
     ) -> Surface:
-        """`base` is the engine's base surface (`volume.base_surface`) on the map's grid."""
+        """`base` is the engine's base surface (`volume.base_surface`) on the map's grid;
+        `information` the cameras' information density of each measured cell's height
+        (`Reconstruction.information`, on the map's grid), which tells the noise of the
+        surface peaks are read on (`coarse`)."""
         grid = grid_of(heightmap)
         rise = relief(heightmap, base, background_m)
         region = np.isfinite(rise)
         step = heightmap.step
         smooth = masked_smooth(rise, region, max(BASIN_SMOOTHING_M / step, 1.0))
         coarse = masked_smooth(rise, region, max(PEAK_SMOOTHING_M / step, 1.0))
+        noise = None
+        if information is not None:
+            noise = smooth_sigma(grid, information, region, PEAK_SMOOTHING_M)
         surface = np.where(region, heightmap.heights.astype(float), np.nan)
         if background_m is None and heightmap.counted is not None:
             counted = counted_columns(grid, heightmap.counted)  # the volume's own columns
@@ -314,18 +343,27 @@ class Surface:
             counted = denoised_columns(grid, surface, volume_base, DENOISE_SCALE_M)
         columns = counted * grid.cell_area
         xs, ys = heightmap.cell_centres()
-        return cls(heightmap, floor_z, smooth, coarse, surface, columns, xs, ys)
+        return cls(heightmap, floor_z, smooth, coarse, surface, columns, xs, ys, noise)
 
     @classmethod
     def for_piles(
-        cls, heightmap: HeightMap, base: str, floor_z: float, background_m: float | None
+        cls,
+        heightmap: HeightMap,
+        base: str,
+        floor_z: float,
+        background_m: float | None,
+        information: np.ndarray | None = None,
     ) -> Surface:
         """The surface piles are found on: `heightmap` in blocks up to DETECTION_STEP_M wide
-        (`detection_map`) above its base (`base`, the site's: "floor" or "boundary")."""
+        (`detection_map`) above its base (`base`, the site's: "floor" or "boundary");
+        `information` on `heightmap`'s grid (a density: a block's is its cells' mean)."""
         blocks = detection_map(heightmap)
         grid = grid_of(blocks)
         under = base_surface(grid, blocks.heights.astype(float), base, floor_z)
-        return cls.of(blocks, under, floor_z, background_m)
+        if information is not None and blocks is not heightmap:
+            k = round(blocks.step / heightmap.step)
+            information = block_means(information.astype(np.float64), k, blocks.shape)
+        return cls.of(blocks, under, floor_z, background_m, information)
 
     def pile(
         self,
@@ -397,6 +435,7 @@ def detect_piles(surface: Surface, settings: DetectionConfig) -> list[Pile]:
         coarse,
         settings.min_prominence_m,
         settings.min_separation_m / surface.heightmap.step,
+        surface.noise,
     )
     tallest = _highest(coarse, labels, int(labels.max()))
     # each pile measured over its bounding box, not over the whole map (16 piles on a 20 m

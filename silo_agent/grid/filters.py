@@ -54,3 +54,10 @@ def block_sums(values: np.ndarray, k: int) -> np.ndarray:
     for i in range(k):
         out += across[:, i]
     return out
+
+
+def block_means(values: np.ndarray, k: int, shape: tuple[int, int]) -> np.ndarray:
+    """Means over k x k blocks (`block_sums` / k^2), cut to `shape`: a density (per unit area)
+    on cells k times as wide."""
+    rows, cols = shape
+    return block_sums(values, k)[:rows, :cols] / (k * k)

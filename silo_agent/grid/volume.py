@@ -144,7 +144,7 @@ def denoised_columns(
     return counted_columns(grid, counted_heights(grid, heights, base, scale_m))
 
 
-CLIP_BLOCK_M = 0.05  # the noise model's blocks for the clip's correction (`_smooth_sigma`)
+CLIP_BLOCK_M = 0.05  # the noise model's blocks for the clip's correction (`smooth_sigma`)
 CLIP_MIN_DENSITY = 1e-3  # ... a block with less than this x the densest's information: fill
 
 
@@ -167,7 +167,7 @@ def counted_heights(
     E[max(X, 0)] - max(mu, 0) = sigma (phi(z) - |z| Phi(-|z|)), z = mu / sigma (0.4 sigma a
     cell on a floor at the base, nothing a few sigmas off it). With `information` (the cameras'
     noise model) that expected excess, read at mu = the smooth part and sigma = its noise
-    (`_smooth_sigma`), is taken off the clipped value; but never below min(smooth, 0): a cell
+    (`smooth_sigma`), is taken off the clipped value; but never below min(smooth, 0): a cell
     above the base is taken down to the base at most, one under it to its own signed value.
     The noise model's scale is the configured depth noise factor, rarely measured on a site;
     that bound keeps a wrong one's damage within the clip's own bias: on a bare floor at the
@@ -203,7 +203,7 @@ def counted_heights(
     smooth = np.where(region, smooth, 0.0)
     kept = np.maximum(smooth, 0.0)
     if information is not None:
-        sigma = _smooth_sigma(grid, information, region, scale_m)
+        sigma = smooth_sigma(grid, information, region, scale_m)
         kept = np.maximum(kept - clip_excess(smooth, sigma), np.minimum(smooth, 0.0))
     counted = kept + (relative - smooth)
     return np.where(region, counted, np.nan)
@@ -226,7 +226,7 @@ def clip_excess(mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     return excess
 
 
-def _smooth_sigma(
+def smooth_sigma(
     grid: Grid, information: np.ndarray, region: np.ndarray, scale_m: float
 ) -> np.ndarray:
     """Per cell, the noise sigma of `masked_smooth`'s mean at `scale_m` over `region`, from the

@@ -21,7 +21,7 @@ from scipy import ndimage
 from silo_agent.base.limits import MAX_GRID_CELLS
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.grid.bin_shape import BinShape
-from silo_agent.grid.filters import block_sums, dilate_cross
+from silo_agent.grid.filters import block_means, block_sums, dilate_cross
 from silo_agent.grid.geometry import points_outside
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
@@ -105,6 +105,9 @@ class Reconstruction:
     reference_z: float | None = None  # a bin's headspace reference: eave or roof peak
     # a bin's first pass only: the level its points are reseated on (walls.reseat_level)
     reseat_level: np.ndarray | None = field(default=None, repr=False)
+    # how well each measured cell's height is known (reconstruct/trust.py, 1 / m^4; 0 where
+    # filled), float32: pile detection reads the noise of the surface from it
+    information: np.ndarray | None = field(default=None, repr=False)
 
     def bin_figures(self) -> dict[str, float | None]:
         """Fill ratio and headspace (to the highest grain, to the mean surface) of a bin."""
@@ -486,6 +489,9 @@ def _coarsened(fine: Reconstruction, grid: Grid, k: int) -> Reconstruction:
     result = replace(fine, grid_step_m=grid.step, parameters=parameters)
     if fine.heightmap is not None:
         result.heightmap = fine.heightmap.coarsened(k, grid.inside)
+    if fine.information is not None:  # a density: a block's is its cells' mean
+        information = block_means(fine.information.astype(np.float64), k, grid.shape)
+        result.information = information.astype(np.float32)
     return result
 
 
@@ -759,9 +765,10 @@ def _reconstruct(
     under = _under_base(heights, base, observed) if site.base == "floor" else None
     scale_m = BIN_DENOISE_SCALE_M if site.bin is not None else DENOISE_SCALE_M
     # a bin keeps the plain clip: its bare steel reads ~0.5 cm low from 8-10 m, an offset
+    measured = None if information is None else np.where(observed, information, 0.0)
     noise = None
     if site.bin is None and information is not None:  # filled cells measured nothing
-        noise, information = np.where(observed, information, 0.0), None
+        noise, information = measured, None
     counted = counted_heights(grid, heights, base, scale_m, noise)
     del noise
     volume = integrate_counted(grid, counted)
@@ -787,6 +794,9 @@ def _reconstruct(
     )
     result.points["after_downsampling"] = counts.after_downsampling
     result.registration = registration
+    if measured is not None and not first_pass:
+        result.information = measured.astype(np.float32)
+    del measured
     if information is not None and blob is not None:
         result.reseat_level = reseat_level(grid, heights, observed, information, blob)
     return result
