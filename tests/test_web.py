@@ -277,6 +277,139 @@ def test_page_shows_what_the_agent_published(tmp_path: Path, broker, collector_f
         agent.kill()
 
 
+# the [r, g, b] of every pixel in the top arguments[1] rows of a picture in the page, by row
+TOP_ROWS_JS = """
+const img = document.getElementById(arguments[0]);
+const canvas = document.createElement('canvas');
+canvas.width = img.naturalWidth; canvas.height = img.naturalHeight;
+const ctx = canvas.getContext('2d');
+ctx.drawImage(img, 0, 0);
+const data = ctx.getImageData(0, 0, canvas.width, arguments[1]).data;
+const rows = [];
+for (let y = 0; y < arguments[1]; y++) {
+  const row = [];
+  for (let x = 0; x < canvas.width; x++) {
+    const at = (y * canvas.width + x) * 4;
+    row.push([data[at], data[at + 1], data[at + 2]]);
+  }
+  rows.push(row);
+}
+return rows;
+"""
+
+
+def colour_bar(band: np.ndarray, colormap: str) -> tuple[int, int] | None:
+    """The widest run (100 pixels at least) along a row of `band` whose pixels are the
+    colormap's colours, rising left to right: (first, last) of its places in the colormap's
+    table of 256; None without one."""
+    from matplotlib import colormaps
+
+    table = colormaps[colormap](np.arange(256), bytes=True)[:, :3].astype(int)
+    best: tuple[int, int, int] | None = None
+    for row in band.astype(int):
+        distance = np.abs(row[:, np.newaxis, :] - table[np.newaxis]).max(axis=2)
+        place, close = distance.argmin(axis=1), distance.min(axis=1) <= 2
+        start = 0
+        for x in range(1, len(row) + 1):
+            if x < len(row) and close[x] and close[x - 1] and place[x] >= place[x - 1]:
+                continue
+            if close[start] and (best is None or x - start > best[0]):
+                best = (x - start, int(place[start]), int(place[x - 1]))
+            start = x
+    return None if best is None or best[0] < 100 else (best[1], best[2])
+
+
+@pytest.mark.slow
+def test_the_live_map_carries_its_height_scale(tmp_path: Path, broker, collector_factory, browser):
+    """The live picture's legend, like the scan map's: the floor's and the top's heights in
+    metres about a bar of the map's own colours (an operator had no way to read a height off
+    it). Checked on the picture the page shows: a band above the map holds a viridis bar from
+    its first colour to its last, and the map's cells are the published live map's heights on
+    that scale, from the floor to the highest cell."""
+    from PIL import Image
+
+    from silo_agent.telemetry.heightmap_codec import decode_live_heightmap
+
+    port = free_port()
+    config = write_config(
+        tmp_path / "agent.toml",
+        broker.port,
+        tmp_path,
+        schedule={"scan_at_start": False},
+        web={"enabled": True, "port": port},
+    )
+    config.write_text(config.read_text() + "\n[live]\ncoverage_check = false\n")
+    col = collector_factory(broker, [f"{BASE}/heightmap/live", f"{BASE}/status"])
+    agent = Daemon(config, tmp_path)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        col.wait_for(  # `online` comes after the agent subscribed: the request below is not lost
+            lambda ms: any(
+                m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online"
+                for m in ms
+            )
+        )
+        col.publish(f"{BASE}/cmd/live", b'{"on": true, "rate_hz": 2, "duration_s": 3}')
+        agent.wait_log("live session ended")
+        live = json.loads(fetch(base + "/api/state")[1])["live"]  # the last map, kept
+        col.wait_for(
+            lambda ms: any(
+                decode_live_heightmap(m.payload).sequence == live["sequence"]
+                for m in ms
+                if m.topic == f"{BASE}/heightmap/live"
+            )
+        )
+        (payload,) = [
+            m.payload
+            for m in col.on(f"{BASE}/heightmap/live")
+            if decode_live_heightmap(m.payload).sequence == live["sequence"]
+        ]
+        hm = decode_live_heightmap(payload).heightmap
+
+        browser.get(base + "/")
+        img = "document.getElementById('live-map')"
+        wait_js(
+            browser,
+            f"{img}.getAttribute('src') === 'api/live.png?n={live['count']}'"
+            f" && {img}.complete && {img}.naturalWidth > 0",
+        )
+        status, png = fetch(base + "/api/live.png")
+        assert status == 200
+        with Image.open(io.BytesIO(png)) as picture:
+            layout = json.loads(picture.info["silo-agent:layout"])
+            assert picture.size == (layout["width_px"], layout["height_px"])
+        shown = browser.execute_script(f"return [{img}.naturalWidth, {img}.naturalHeight]")
+        assert shown == [layout["width_px"], layout["height_px"]]
+
+        # the scale: the floor to the highest cell of the published map, in metres
+        assert layout["vmin"] == 0.0  # floor_z
+        assert layout["vmax"] == pytest.approx(max(float(np.nanmax(hm.heights)), 0.05))
+        band = layout["scale_band_px"]
+        top_of_map = layout["height_px"] - layout["margin_px"] - layout["rows"] * layout["cell_px"]
+        assert 0 < band <= top_of_map - layout["margin_px"]
+        pixels = np.array(browser.execute_script(TOP_ROWS_JS, "live-map", band))
+        bar = colour_bar(pixels, layout["colormap"])
+        assert bar is not None and bar[0] <= 3 and bar[1] >= 252, bar
+
+        # ...the scale the cells are coloured on
+        rng = np.random.default_rng(5)
+        rows = rng.integers(1, hm.shape[0] - 1, 300)
+        cols = rng.integers(1, hm.shape[1] - 1, 300)
+        s, m = layout["cell_px"], layout["margin_px"]
+        xs = m + cols * s + s // 2
+        ys = layout["height_px"] - m - rows * s - s // 2 - 1
+        cells = np.array(
+            browser.execute_script(
+                PIXELS_JS, "live-map", [[int(x), int(y)] for x, y in zip(xs, ys, strict=True)]
+            )
+        )
+        known = np.isfinite(hm.heights[rows, cols])
+        close = np.abs(cells - expected_colours(hm, layout, rows, cols)).max(axis=1) <= 6
+        assert known.sum() > 100 and close[known].mean() > 0.9, close[known].mean()
+    finally:
+        agent.kill()
+
+
 def test_bad_web_settings_stop_the_agent_before_it_starts(tmp_path: Path) -> None:
     def config(**web: object) -> Path:
         return write_config(tmp_path / "agent.toml", free_port(), tmp_path, web=web)

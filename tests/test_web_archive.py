@@ -92,6 +92,32 @@ def test_scan_list_history_ranges_and_lookups(tmp_path: Path, cone_scan_2: Scan,
     assert archive.latest().scan_id == late.scan_id
 
 
+def test_the_scan_list_pages_from_a_scan_id(tmp_path: Path, cone_scan_2: Scan, analysed):
+    """A page starts just older than a scan id, not at a position: a scan that lands between
+    two pages shifts nothing (an offset would give the first page's last scan again)."""
+    cache, _ids = cache_with_scans(tmp_path / "scans", cone_scan_2, analysed)
+    archive = Archive(cache)
+    newest_first = [r.scan_id for r in reversed(archive.records())]
+    first, more = archive.page(2)
+    assert [r.scan_id for r in first] == newest_first[:2] and more
+    when = NOW + timedelta(minutes=1)
+    landed = cache.write_scan(
+        replace(
+            cone_scan_2,
+            scan_id=f"{SILO}-{when:%Y%m%dT%H%M%SZ}",
+            captured_at=f"{when:%Y-%m-%dT%H:%M:%SZ}",
+            silo_id=SILO,
+        ),
+        {},
+    )
+    second, more = archive.page(2, before=first[-1].scan_id)
+    assert [r.scan_id for r in second] == newest_first[2:4] and not more
+    assert [r.scan_id for r in archive.page(1)[0]] == [landed.name]
+    assert archive.page(10, before=newest_first[-1]) == ([], False)
+    with pytest.raises(ScanNotFound):
+        archive.page(2, before=f"{SILO}-20000101T000000Z")  # removed by retention, say
+
+
 def test_colours_follow_the_layout(analysed):
     """The picture's promise (docs/web.md): its lookup table gives what calling matplotlib's
     colormap on the heights gives, filled cells blended, outside grey."""

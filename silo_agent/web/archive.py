@@ -182,30 +182,52 @@ class Archive:
         self.cache = cache
         self._lock = threading.Lock()
         self._names: set[str] | None = None
-        self._records: dict[str, ScanRecord] = {}
+        self._records: list[ScanRecord] = []  # oldest first
+        self._positions: dict[str, int] = {}  # scan id -> its index in `_records`
         self._views: OrderedDict[str, ScanView] = OrderedDict()
         self._damaged: set[str] = set()  # scans whose kept result did not read
 
     def records(self) -> list[ScanRecord]:
-        """This silo's cached scans, oldest first. The manifests are read again only when the
-        directory's entries change; a scan still waiting for its result is looked at again."""
-        names = self.cache.names()
+        """This silo's cached scans, oldest first."""
         with self._lock:
-            if names != self._names:
-                entries = self.cache.entries()
-                old = self._records
-                self._records = {
-                    e.scan_id: old.get(e.scan_id) or self._record(e.path, e.captured_at)
-                    for e in entries
-                }
-                self._names = names
-            for scan_id, record in self._records.items():
-                kept = self.cache.directory / scan_id / RESULT
-                if not record.has_result and scan_id not in self._damaged and kept.is_file():
-                    self._records[scan_id] = again = self._record(kept.parent, record.captured_at)
-                    if not again.has_result:  # read once, logged once: not at every poll
-                        self._damaged.add(scan_id)
-            return list(self._records.values())
+            self._refresh()
+            return list(self._records)
+
+    def page(self, limit: int, before: str | None = None) -> tuple[list[ScanRecord], bool]:
+        """Up to `limit` scans, newest first, from the newest or, with `before`, from the scan
+        just older than that one; and whether older scans remain. A scan id and not a position
+        marks where a page starts, so scans that arrive meanwhile shift nothing: the next page
+        neither repeats nor skips a scan. ScanNotFound for a `before` not listed (removed by
+        retention since)."""
+        with self._lock:
+            self._refresh()
+            end = len(self._records) if before is None else self._positions.get(before)
+            if end is None:
+                raise ScanNotFound(before)
+            start = max(0, end - limit)
+            return self._records[start:end][::-1], start > 0
+
+    def _refresh(self) -> None:
+        """Bring the list up to date (hold the lock). The manifests are read again only when
+        the directory's entries change; a scan still waiting for its result is looked at
+        again."""
+        names = self.cache.names()
+        if names != self._names:
+            old = {r.scan_id: r for r in self._records}
+            self._records = [
+                old.get(e.scan_id) or self._record(e.path, e.captured_at)
+                for e in self.cache.entries()
+            ]
+            self._positions = {r.scan_id: k for k, r in enumerate(self._records)}
+            self._names = names
+        for k, record in enumerate(self._records):
+            if record.has_result or record.scan_id in self._damaged:
+                continue
+            kept = self.cache.directory / record.scan_id / RESULT
+            if kept.is_file():
+                self._records[k] = again = self._record(kept.parent, record.captured_at)
+                if not again.has_result:  # read once, logged once: not at every poll
+                    self._damaged.add(record.scan_id)
 
     @staticmethod
     def _record(path: Path, captured_at: datetime) -> ScanRecord:
@@ -224,8 +246,10 @@ class Archive:
 
     def directory(self, scan_id: str) -> Path:
         """The directory of a listed scan; ScanNotFound for any other name."""
-        if scan_id not in {r.scan_id for r in self.records()}:
-            raise ScanNotFound(scan_id)
+        with self._lock:
+            self._refresh()
+            if scan_id not in self._positions:
+                raise ScanNotFound(scan_id)
         return self.cache.directory / scan_id
 
     def latest(self) -> ScanRecord | None:

@@ -20,6 +20,7 @@ import errno
 import hmac
 import json
 import os
+import re
 import socket
 import tempfile
 import threading
@@ -62,6 +63,8 @@ COOKIE = "silo_agent_token"
 EVENT_POLL_S = 0.5  # how often an open page's event stream looks for a change
 PREPARE_POLL_S = 1.0  # how often the server looks for a new scan to draw before it is asked
 KEPT_PICTURES = 8
+SCANS_PER_PAGE = 50  # api/scans without `limit`
+MAX_SCANS_PER_PAGE = 500  # a page stays cheap to build and to draw: a year of scans is 100,000
 RENDER_NICENESS = 10  # the picture thread yields the CPU to a running scan
 ASSETS = {
     "index.html": "text/html; charset=utf-8",
@@ -221,9 +224,21 @@ class Pages:
     async def api_state(self, _request: Request) -> Response:
         return JSONResponse(await self._off_loop(self.state))
 
-    async def api_scans(self, _request: Request) -> Response:
-        records = await self._off_loop(self.sources.archive.records)
-        return JSONResponse([r.to_json() for r in reversed(records)])
+    async def api_scans(self, request: Request) -> Response:
+        """One page of the scan list, newest first: `limit` scans from the newest, or from
+        the scan just older than `before` (a scan id), and whether older ones remain."""
+        limit = request.query_params.get("limit", str(SCANS_PER_PAGE))
+        # digits only, and few: int() takes "+5", " 5", "٥" and chokes on 5,000 digits
+        if not (re.fullmatch("[0-9]{1,3}", limit) and 1 <= int(limit) <= MAX_SCANS_PER_PAGE):
+            return _bad_request("limit", f"a whole number from 1 to {MAX_SCANS_PER_PAGE}")
+        before = request.query_params.get("before")
+        try:
+            records, more = await self._off_loop(
+                lambda: self.sources.archive.page(int(limit), before)
+            )
+        except ScanNotFound:
+            return _bad_request("before", f"no scan {before!r} in the list (removed since?)")
+        return JSONResponse({"scans": [r.to_json() for r in records], "more": more})
 
     def scan_map(self, scan_id: str) -> tuple[bytes, MapLayout | None]:
         """One scan's map picture and layout, drawn once and kept (call in `pool`)."""
@@ -288,6 +303,7 @@ class Pages:
                 config.silo.floor_z,
                 _region(config),
                 robots=live.meta.get("robots") or [],
+                scale_band=True,  # no legend beside it: the page fetches only the picture
             )
             return png, layout
 
@@ -356,6 +372,11 @@ class Pages:
             media_type="text/event-stream",
             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"},
         )
+
+
+def _bad_request(parameter: str, problem: str) -> Response:
+    """A 400 whose one-line JSON names the query parameter at fault."""
+    return JSONResponse({"error": f"{parameter}: {problem}"}, 400)
 
 
 def _region(config: Config) -> Any:

@@ -145,11 +145,27 @@ async function showHistory() {
   }
 }
 
-async function showScans() {
-  const scans = await getJSON("api/scans");
+// The scan list, a page at a time (api/scans): the newest page first, older pages appended by
+// the "older scans" button; a new scan goes on top, the pages shown below it stay.
+const SCAN_PAGE = 50;
+let scanList = [];  // the scans listed, newest first
+let olderScans = false;  // the archive holds scans older than the last listed
+
+function scanPage(before) {
+  const cursor = before ? `&before=${encodeURIComponent(before)}` : "";
+  return fetch(`api/scans?limit=${SCAN_PAGE}${cursor}`, { credentials: "same-origin" });
+}
+
+async function pageOf(before) {
+  const response = await scanPage(before);
+  if (!response.ok) throw new Error(`api/scans: ${response.status}`);
+  return response.json();
+}
+
+function drawScans() {
   const body = $("scans").tBodies[0];
   body.replaceChildren();
-  for (const scan of scans) {
+  for (const scan of scanList) {
     const row = body.insertRow();
     row.dataset.scanId = scan.scan_id;
     cell(row, scan.scan_id);
@@ -166,7 +182,53 @@ async function showScans() {
     }
     links.appendChild(link(row, `scans/${encodeURIComponent(scan.scan_id)}/export.tar.gz`, "export"));
   }
+  $("older-scans").hidden = !olderScans;
 }
+
+// the newest page over the list shown: its scans replace theirs (a result kept since), newer
+// ones go on top and the older pages shown stay; when more than a page arrived since, pages
+// are read down to the scans shown
+async function showScans() {
+  let { scans: fetched, more } = await pageOf(null);
+  const shown = new Set(scanList.map((s) => s.scan_id));
+  const newestShown = scanList.length ? scanList[0].captured_at : null;
+  while (more && newestShown !== null && !fetched.some((s) => shown.has(s.scan_id)) &&
+         fetched[fetched.length - 1].captured_at >= newestShown) {
+    const older = await pageOf(fetched[fetched.length - 1].scan_id);
+    fetched = fetched.concat(older.scans);
+    more = older.more;
+  }
+  const oldest = fetched.length ? fetched[fetched.length - 1].scan_id : null;
+  const below = scanList.findIndex((s) => s.scan_id === oldest);
+  if (more && below >= 0) {
+    scanList = fetched.concat(scanList.slice(below + 1));
+  } else {  // the first list, the whole archive read, or no scan shown is left
+    scanList = fetched;
+    olderScans = more;
+  }
+  drawScans();
+}
+
+async function showOlderScans() {
+  const button = $("older-scans");
+  button.disabled = true;  // one page at a time: a second click waits for the first
+  try {
+    const response = await scanPage(scanList[scanList.length - 1].scan_id);
+    if (response.status === 400) {  // the last scan listed was removed (retention): start again
+      scanList = [];
+      await showScans();
+    } else if (response.ok) {
+      const page = await response.json();
+      const shown = new Set(scanList.map((s) => s.scan_id));
+      scanList = scanList.concat(page.scans.filter((s) => !shown.has(s.scan_id)));
+      olderScans = page.more;
+      drawScans();
+    }
+  } finally {
+    button.disabled = false;
+  }
+}
+$("older-scans").addEventListener("click", showOlderScans);
 
 // the last scan, when it gave no result: it is in no list, so it is named above the figures
 // of the last scan that did
