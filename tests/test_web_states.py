@@ -5,6 +5,7 @@ figures; the agent away fades the page until it is back."""
 
 from __future__ import annotations
 
+import re
 import urllib.request
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from silo_agent.analysis.summary import ScanSummary
 from silo_agent.config import MetricsConfig
 from silo_agent.telemetry.prometheus import Metrics
 from tests.support.agent import Daemon, write_config
+from tests.support.cli import run_cli
 from tests.support.mqtt_broker import free_port
 from tests.test_bins import SUMMARY  # a bin's valid result
 from tests.test_web import wait_js
@@ -160,3 +162,41 @@ def test_the_page_fades_while_the_agent_is_away_and_recovers(
         assert browser.find_element("id", "connection").text == "connected"
     finally:
         agent.kill()
+
+
+@pytest.mark.slow
+def test_the_map_legends_read_heights_above_a_floor_that_is_not_at_zero(
+    tmp_path: Path, broker, browser
+) -> None:
+    """A site whose floor is not at z = 0 (here z = -1 m): the page's and the report's map
+    legends run from 0.00 m above the floor to the top. They had labelled the silo-frame z of
+    the scale's ends as "height above the floor": "-1.00 m" for the floor itself."""
+    web_port = free_port()
+    config = write_config(
+        tmp_path / "agent.toml", broker.port, tmp_path, web={"enabled": True, "port": web_port}
+    )
+    text = config.read_text()
+    assert "floor_z = 0.0\n" in text
+    config.write_text(text.replace("floor_z = 0.0\n", "floor_z = -1.0\n", 1))
+    agent = Daemon(config, tmp_path)
+    try:
+        (finished,) = agent.wait_log("scan finished")
+        browser.get(f"http://127.0.0.1:{web_port}/")
+        wait_js(browser, "document.getElementById('legend-max').textContent !== ''")
+        layout = browser.execute_script(
+            f"return fetch('api/map/{finished['scan_id']}.json').then((r) => r.json());"
+        )
+        assert layout["vmin"] == -1.0  # the floor's z: the scale starts there
+        top = layout["vmax"] - layout["vmin"]
+        assert top > 1.0  # the flat grain, 1 m above z = 0, stands over 1 m above this floor
+        shown = [browser.find_element("id", k).text for k in ("legend-min", "legend-max")]
+        assert shown == ["0.00 m", f"{top:.2f} m"]
+    finally:
+        agent.kill()
+    report = tmp_path / "report.html"
+    done = run_cli("report", finished["scan_id"], "--config", str(config), "--out", str(report))
+    assert done.returncode == 0, done.stderr
+    legend = re.search(
+        r'<p class="legend"><span>([^<]*)</span>.*?<span>([^<]*)</span>', report.read_text()
+    )
+    assert legend is not None and legend.groups() == ("0.00 m", f"{top:.2f} m")

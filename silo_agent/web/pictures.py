@@ -75,6 +75,13 @@ class MapLayout:
         return asdict(self)
 
     @property
+    def scale_m(self) -> tuple[float, float]:
+        """The colour scale's ends as heights above the floor, as its legends label them
+        (`vmin` is the floor's silo-frame z: labelled as such, a floor at z = -12 m read
+        "-12.00 m ... height above the floor")."""
+        return 0.0, self.vmax - self.vmin
+
+    @property
     def map_px(self) -> tuple[int, int]:
         """Width and height of the map with its margin: the picture less the band and the
         white a narrow map is widened by for it."""
@@ -179,9 +186,10 @@ def _scale_band(fig: Figure, layout: MapLayout) -> Block:
     shares = (np.arange(width) + 0.5) / width  # each column's place on the scale
     row = np.rint(table[_table_index(shares, len(table))]).astype(np.uint8)
     y = 1 - (top + height / 2) / layout.height_px  # figure fraction, up from the bottom
+    low, high = layout.scale_m
     for x, label, align in (
-        (left - 6, f"{layout.vmin:.2f} m", "right"),
-        (left + width + 6, f"{layout.vmax:.2f} m", "left"),
+        (left - 6, f"{low:.2f} m", "right"),
+        (left + width + 6, f"{high:.2f} m", "left"),
         (left + width + 64, "height above the floor", "left"),
     ):
         fig.text(x / layout.width_px, y, label, fontsize=9, ha=align, va="center", color="#1d1d1d")

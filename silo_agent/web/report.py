@@ -196,12 +196,13 @@ def report_html(view: ScanView) -> str:
     if picture is not None:
         png, layout = picture
         gradient = ", ".join(legend(layout))
+        low, high = layout.scale_m
         parts += [
             f'<img id="map" alt="height map" src="data:image/png;base64,'
             f'{base64.b64encode(png).decode()}">',
-            f'<p class="legend"><span>{layout.vmin:.2f} m</span> <span style="width:160px;'
+            f'<p class="legend"><span>{low:.2f} m</span> <span style="width:160px;'
             f'height:12px;background:linear-gradient(to right, {gradient})"></span> '
-            f"<span>{layout.vmax:.2f} m</span> <span>height above the floor; pale: filled (not "
+            f"<span>{high:.2f} m</span> <span>height above the floor; pale: filled (not "
             "observed); grey: outside; dashed: each camera's footprint; dotted: piles; black: "
             "walls</span></p>",
         ]

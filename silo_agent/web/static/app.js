@@ -121,8 +121,9 @@ async function showMap(scanId) {
   img.dataset.scanId = scanId;
   img.src = `api/map/${encodeURIComponent(scanId)}.png`;
   text("map-scan", scanId);
-  text("legend-min", `${fixed(layout.vmin, 2)} m`);
-  text("legend-max", `${fixed(layout.vmax, 2)} m`);
+  // heights above the floor: vmin is the floor's silo-frame z (pictures.MapLayout.scale_m)
+  text("legend-min", `${fixed(0, 2)} m`);
+  text("legend-max", `${fixed(layout.vmax - layout.vmin, 2)} m`);
   $("legend-bar").style.background = `linear-gradient(to right, ${layout.legend.join(", ")})`;
   cameraScan = Object.fromEntries((layout.cameras || []).map((c) => [c.serial, c]));
 }
