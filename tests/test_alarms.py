@@ -301,3 +301,45 @@ def test_a_switched_off_detector_clears_its_alarm_in_the_next_scan():
 
 def test_alarm_types_every_consumer_declares_are_the_detectors_ones():
     assert set(ALARM_TYPES) == set(DETECTORS) | {"calibration", "outbox"}
+
+
+@pytest.mark.slow
+def test_a_big_bins_collapse_is_judged_by_the_noise_where_it_is() -> None:
+    """Two scans of the simulator's 18 m bin from eight full-resolution eave cameras: the ring
+    15-19 m from them is three times as noisy as the heap below them, and one sigma for the
+    whole map, set by the ring's many cells, asked a drop of 0.58 m anywhere: a funnel 0.5 m
+    deep in the heap's flank was missed. Judged by the noise where it is (the cameras' noise
+    model, `Inputs.information`), it raises the alarm there, and the same bin scanned again
+    with nothing changed raises none."""
+    from dataclasses import replace
+
+    from silo_agent.config import ReconstructionConfig
+    from silo_agent.reconstruct import reconstruct
+    from silo_agent.sim.simulate import simulate
+
+    views = [f"A{k}" for k in range(1, 9)]
+    first, second = (
+        reconstruct(
+            simulate("bin-18", views, seed=seed, layout="eave", resolution=(1280, 720)),
+            ReconstructionConfig(grid_step_m=0.02),
+        )
+        for seed in (0, 1)
+    )
+    before, after = first.heightmap, second.heightmap
+    assert before is not None and after is not None and second.information is not None
+    x, y = after.cell_centres()
+    at = (2.0, 0.0)  # on the heap's flank, under the cameras
+    funnel = 0.5 * np.clip(1 - np.hypot(x - at[0], y - at[1]) / 1.0, 0, None)
+    dropped = replace(after, heights=(after.heights - funnel).astype(after.heights.dtype))
+    cfg = AlarmsConfig()
+
+    def collapse(new: HeightMap, information: np.ndarray | None) -> list[tuple[float, float]]:
+        state = AlarmState(baseline_scan_id="first")
+        scan = inputs(new, "second", before, "first", information=information)
+        events, _ = evaluate(state, scan, cfg)
+        return [e.position for e in events if e.type == "collapse" and e.state == "raised"]
+
+    (where,) = collapse(dropped, second.information)
+    assert np.hypot(where[0] - at[0], where[1] - at[1]) < 0.3
+    assert collapse(after, second.information) == []  # the same bin again: no collapse
+    assert collapse(dropped, None) == []  # one sigma for the whole map misses it

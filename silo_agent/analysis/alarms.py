@@ -22,9 +22,12 @@ from scipy import ndimage
 
 from silo_agent.analysis.alarm_types import ALARM_TYPES, AlarmEvent, AlarmStateName, Severity
 from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
+from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
+from silo_agent.grid.volume import smooth_sigma
 
 SIGMA_PER_MAD = 1.4826  # standard deviation of a normal distribution per median absolute dev.
+NOISE_SHAPE_M = 0.1  # the cameras' noise model, read over this scale, says where maps are noisy
 
 
 # ---------------------------------------------------------------- inputs and findings
@@ -46,6 +49,8 @@ class Inputs:
     cache_full: bool = False
     reconstructed: bool = True  # False: the scan failed before reconstruction (no coverage)
     baseline: HeightMap | None = None  # collapse baseline's map, if there is one
+    # the new map's information density (Reconstruction.information): where its noise is
+    information: np.ndarray | None = None
     baseline_scan_id: str | None = None
     previous_volume_m3: float | None = None  # default: the state's last valid volume
     registration_residual_m: Mapping[str, float] = field(default_factory=dict)  # pair -> median
@@ -104,45 +109,86 @@ class Collapse:
     area_m2: float
     depth_m: float  # the deepest drop
     volume_m3: float  # grain volume lost over the region
-    threshold_m: float  # the drop that counted (max of the configured depth and the noise floor)
+    # the drop that counted (max of the configured depth and the noise floor; its mean over
+    # the region where the noise differs over the map)
+    threshold_m: float
 
 
-def _roughness(hm: HeightMap, mask: np.ndarray) -> float:
-    """Sensor noise of one map: robust sigma of the heights minus their 3x3 median."""
+def _roughness(hm: HeightMap, mask: np.ndarray, shape: np.ndarray | float = 1.0) -> float:
+    """Sensor noise of one map: robust sigma of the heights minus their 3x3 median (each
+    residual over the map's `noise_shape` there)."""
     filled = np.where(np.isfinite(hm.heights), hm.heights, np.nanmedian(hm.heights))
-    residual = (filled - ndimage.median_filter(filled, size=3))[mask]
+    residual = ((filled - ndimage.median_filter(filled, size=3)) / shape)[mask]
     if residual.size == 0:
         return 0.0
     return float(SIGMA_PER_MAD * np.median(np.abs(residual - np.median(residual))))
 
 
-def noise_floor(baseline: HeightMap, new: HeightMap, both: np.ndarray) -> float:
-    """Sigma of the height difference that sensor noise alone explains: the larger of the
-    robust spread of the difference itself and the two maps' own roughness combined."""
-    diff = (new.heights - baseline.heights)[both]
+def noise_shape(new: HeightMap, information: np.ndarray | None) -> np.ndarray | float:
+    """Per cell, how noisy the maps are there against their median cell: the cameras' noise
+    model (`volume.smooth_sigma` of `information` over NOISE_SHAPE_M) over its median, the
+    largest where nothing was measured; 1 (the same everywhere) without `information`.
+
+    Across a big bin the noise differs threefold between the heap under the cameras and the
+    ring 15-19 m from them: one sigma for the whole map, set by the ring's many cells, asked
+    an 18 m bin's heap for a drop of 0.6-1.2 m before it was a collapse."""
+    if information is None:
+        return 1.0
+    if information.shape != new.heights.shape:
+        raise ValueError(f"information on {information.shape} cells, the map {new.shape}")
+    grid = Grid(new.origin, new.step, new.shape, new.inside)
+    region = np.isfinite(new.heights) & (new.inside > 0)
+    sigma = smooth_sigma(grid, information, region, NOISE_SHAPE_M)
+    modelled = sigma > 0
+    if not np.any(modelled):
+        return 1.0
+    sigma = np.where(modelled, sigma, float(sigma[modelled].max()))
+    return sigma / float(np.median(sigma[modelled]))
+
+
+def noise_floor(
+    baseline: HeightMap, new: HeightMap, both: np.ndarray, shape: np.ndarray | float = 1.0
+) -> float:
+    """Sigma of the height difference that sensor noise alone explains, over `shape`
+    (`noise_shape`; a cell's sigma is this times its shape): the larger of the robust spread
+    of the difference itself and the two maps' own roughness combined."""
+    diff = ((new.heights - baseline.heights) / shape)[both]
     if diff.size == 0:
         return 0.0
     spread = SIGMA_PER_MAD * float(np.median(np.abs(diff - np.median(diff))))
-    rough = float(np.hypot(_roughness(baseline, both), _roughness(new, both)))
+    rough = float(np.hypot(_roughness(baseline, both, shape), _roughness(new, both, shape)))
     return max(spread, rough)
 
 
 def find_collapses(
-    baseline: HeightMap, new: HeightMap, depth_m: float, min_area_m2: float, noise_k: float
+    baseline: HeightMap,
+    new: HeightMap,
+    depth_m: float,
+    min_area_m2: float,
+    noise_k: float,
+    information: np.ndarray | None = None,
 ) -> list[Collapse]:
     """Regions (8-connected) where the new surface is lower than the baseline by more than
-    max(depth_m, noise_k x noise sigma), largest first. The decision rests on the cells
-    observed in both maps: a region needs `min_area_m2` of them; its footprint, depth and lost
-    volume then include the filled cells within it (a hole in one view is still the funnel).
-    The difference is median-filtered (3x3) first so single noisy cells neither make nor
-    break a region."""
+    max(depth_m, noise_k x the noise sigma there), largest first. The sigma is the maps'
+    (`noise_floor`); with the new map's `information` (the cameras are the same in both
+    scans), where the noise is less than that, shaped over the map by the cameras' noise
+    model (`noise_shape`), the less: a collapse under the cameras is judged by the noise
+    there, not by the far wall's, and nowhere by more than the whole map's. The
+    decision rests on the cells observed in both maps: a region needs `min_area_m2` of them;
+    its footprint, depth and lost volume then include the filled cells within it (a hole in
+    one view is still the funnel). The difference is median-filtered (3x3) first so single
+    noisy cells neither make nor break a region."""
     if baseline.heights.shape != new.heights.shape or baseline.step != new.step:
         raise ValueError("baseline and new height maps are on different grids")
     known = np.isfinite(baseline.heights) & np.isfinite(new.heights) & (new.inside > 0)
     both = known & baseline.observed & new.observed
     if not np.any(both):
         return []
-    threshold = max(depth_m, noise_k * noise_floor(baseline, new, both))
+    sigma: float | np.ndarray = noise_floor(baseline, new, both)
+    shape = noise_shape(new, information)
+    if not isinstance(shape, float):  # where the noise is less than the map's, that noise
+        sigma = np.minimum(sigma, noise_floor(baseline, new, both, shape) * shape)
+    threshold = np.maximum(depth_m, noise_k * sigma)
     drop = np.where(known, baseline.heights.astype(float) - new.heights, 0.0)
     drop = ndimage.median_filter(drop, size=3)
     labels, count = ndimage.label(known & (drop > threshold), structure=np.ones((3, 3)))
@@ -153,6 +199,7 @@ def find_collapses(
     observed_areas = ndimage.sum(cell_area * both, labels, index)
     areas = ndimage.sum(cell_area, labels, index)
     depths = ndimage.maximum(drop, labels, index)
+    counted = ndimage.mean(np.broadcast_to(threshold, drop.shape), labels, index)
     lost = ndimage.sum(drop * cell_area, labels, index)
     xs, ys = new.cell_centres()
     cx = ndimage.sum(xs * drop * cell_area, labels, index) / lost
@@ -163,7 +210,7 @@ def find_collapses(
             float(areas[i]),
             float(depths[i]),
             float(lost[i]),
-            float(threshold),
+            float(counted[i]),
         )
         for i in range(count)
         if observed_areas[i] >= min_area_m2
@@ -181,6 +228,7 @@ def detect_collapse(inputs: Inputs, cfg: AlarmsConfig, active: bool) -> Finding 
         cfg.collapse_depth_m * scale,
         cfg.collapse_min_area_m2 * scale,
         cfg.collapse_noise_k,
+        inputs.information,
     )
     if not found:
         return Finding(False, "critical", f"no collapse against {inputs.baseline_scan_id}")

@@ -152,6 +152,7 @@ class Pipeline:
             failed_cameras=failed,
             cache_full=run.cache_full,
             baseline=self._baseline(),
+            information=result.information,
             baseline_scan_id=self.config.alarms.baseline_scan_id or self.state.baseline_scan_id,
             registration_residual_m={k: r.median_m for k, r in result.registration.items()},
             gravity_deg=gravity_angles(run.scan.cameras),
