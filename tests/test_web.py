@@ -79,6 +79,21 @@ return arguments[1].map(([x, y]) => {
 """
 
 
+def cell_pixels(
+    browser, image: str, layout: dict, shape: tuple[int, int], count: int, seed: int, border: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, cols, their centre pixels' RGB as the page's `image` shows them) of `count`
+    cells drawn at random at least `border` cells in from the map's edge."""
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(border, shape[0] - border, count)
+    cols = rng.integers(border, shape[1] - border, count)
+    s, m = layout["cell_px"], layout["margin_px"]
+    xs = m + cols * s + s // 2
+    ys = layout["height_px"] - m - rows * s - s // 2 - 1
+    at = [[int(x), int(y)] for x, y in zip(xs, ys, strict=True)]
+    return rows, cols, np.array(browser.execute_script(PIXELS_JS, image, at))
+
+
 def expected_colours(hm, layout: dict, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """What the page promises for these cells (docs/web.md): viridis of the height between
     vmin and vmax; a filled cell blended towards white; computed here from the broker's map."""
@@ -167,17 +182,7 @@ def test_page_shows_what_the_agent_published(tmp_path: Path, broker, collector_f
         layout = json.loads(body)
         assert (layout["rows"], layout["cols"]) == hm.shape
         assert layout["origin"] == pytest.approx(hm.origin) and layout["step"] == hm.step
-        rng = np.random.default_rng(3)
-        rows = rng.integers(2, hm.shape[0] - 2, 400)
-        cols = rng.integers(2, hm.shape[1] - 2, 400)
-        s, m = layout["cell_px"], layout["margin_px"]
-        xs = m + cols * s + s // 2
-        ys = layout["height_px"] - m - rows * s - s // 2 - 1
-        pixels = np.array(
-            browser.execute_script(
-                PIXELS_JS, "map", [[int(x), int(y)] for x, y in zip(xs, ys, strict=True)]
-            )
-        )
+        rows, cols, pixels = cell_pixels(browser, "map", layout, hm.shape, 400, 3, 2)
         expected = expected_colours(hm, layout, rows, cols)
         close = np.abs(pixels - expected).max(axis=1) <= 6  # the map's mm rounding: a LUT step
         observed = hm.observed[rows, cols]
@@ -392,17 +397,7 @@ def test_the_live_map_carries_its_height_scale(tmp_path: Path, broker, collector
         assert bar is not None and bar[0] <= 3 and bar[1] >= 252, bar
 
         # ...the scale the cells are coloured on
-        rng = np.random.default_rng(5)
-        rows = rng.integers(1, hm.shape[0] - 1, 300)
-        cols = rng.integers(1, hm.shape[1] - 1, 300)
-        s, m = layout["cell_px"], layout["margin_px"]
-        xs = m + cols * s + s // 2
-        ys = layout["height_px"] - m - rows * s - s // 2 - 1
-        cells = np.array(
-            browser.execute_script(
-                PIXELS_JS, "live-map", [[int(x), int(y)] for x, y in zip(xs, ys, strict=True)]
-            )
-        )
+        rows, cols, cells = cell_pixels(browser, "live-map", layout, hm.shape, 300, 5, 1)
         known = np.isfinite(hm.heights[rows, cols])
         close = np.abs(cells - expected_colours(hm, layout, rows, cols)).max(axis=1) <= 6
         assert known.sum() > 100 and close[known].mean() > 0.9, close[known].mean()
