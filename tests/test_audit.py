@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import tarfile
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -12,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from silo_agent.base.atomic import write_atomic
 from silo_agent.config import AuditConfig
 from silo_agent.scan import CameraCloud, Scan, ScanError, Site, read_scan
 from silo_agent.storage.audit import AuditCache, comparable, differences
@@ -136,3 +139,31 @@ def test_differences_are_bit_exact_and_ignore_timings():
     c = dict(b, volume_m3=np.nextafter(1.2345678901234567, 2.0))
     (line,) = differences(comparable(a), comparable(c))
     assert line.startswith("volume_m3: published 1.2345678901234567 -> replayed 1.23456789012345")
+
+
+def test_entries_are_read_again_only_where_a_directory_changed(tmp_path: Path):
+    """A daemon lists its cache two or three times a scan (retention, pile ids, the page):
+    a directory whose mtime has not moved is not read again, one that changed is (a result
+    written into it counts its bytes, a removed scan goes, a new one comes)."""
+    cache = AuditCache(AuditConfig(directory=tmp_path / "scans"), "silo-t")
+    first, second = (cache.write_scan(make_scan(k, points=10), {}) for k in (1, 2))
+    past = 1_000_000_000_000_000_000  # 2001: older than any fresh change
+    for path in (first, second):
+        os.utime(path, ns=(past, past))
+    before = {e.scan_id: e.bytes for e in cache.entries()}
+    assert set(before) == {first.name, second.name}
+
+    # not read again while its mtime stands: another silo's manifest, put in place by hand
+    # without moving the directory's mtime, is not seen
+    manifest = json.loads((first / "scan.json").read_text())
+    (first / "scan.json").write_text(json.dumps({**manifest, "silo_id": "silo-x"}))
+    os.utime(first, ns=(past, past))
+    assert [e.scan_id for e in cache.entries()] == [first.name, second.name]
+
+    # what the agent writes moves it: read again
+    write_atomic(second / "result.json", b'{"scan_id": "x"}\n')
+    third = cache.write_scan(make_scan(3, points=10), {})
+    shutil.rmtree(first)
+    now = {e.scan_id: e.bytes for e in cache.entries()}
+    assert set(now) == {second.name, third.name}
+    assert now[second.name] == before[second.name] + len(b'{"scan_id": "x"}\n')
