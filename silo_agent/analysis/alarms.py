@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from silo_agent.analysis.alarm_types import ALARM_TYPES, AlarmEvent, AlarmStateName, Severity
 from silo_agent.config import AlarmsConfig, CalibrationConfig, SiloConfig
-from silo_agent.grid.grid import Grid
+from silo_agent.detect.geometric import grid_of
 from silo_agent.grid.heightmap import HeightMap
 from silo_agent.grid.volume import smooth_sigma
 
@@ -136,9 +136,8 @@ def noise_shape(new: HeightMap, information: np.ndarray | None) -> np.ndarray | 
         return 1.0
     if information.shape != new.heights.shape:
         raise ValueError(f"information on {information.shape} cells, the map {new.shape}")
-    grid = Grid(new.origin, new.step, new.shape, new.inside)
     region = np.isfinite(new.heights) & (new.inside > 0)
-    sigma = smooth_sigma(grid, information, region, NOISE_SHAPE_M)
+    sigma = smooth_sigma(grid_of(new), information, region, NOISE_SHAPE_M)
     modelled = sigma > 0
     if not np.any(modelled):
         return 1.0

@@ -106,7 +106,7 @@ class Reconstruction:
     # a bin's first pass only: the level its points are reseated on (walls.reseat_level)
     reseat_level: np.ndarray | None = field(default=None, repr=False)
     # how well each measured cell's height is known (reconstruct/trust.py, 1 / m^4; 0 where
-    # filled), float32: pile detection reads the noise of the surface from it
+    # filled), float32: pile detection and the collapse alarm read the map's noise from it
     information: np.ndarray | None = field(default=None, repr=False)
 
     def bin_figures(self) -> dict[str, float | None]:

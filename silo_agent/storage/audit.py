@@ -158,8 +158,8 @@ class AuditCache:
         into the directory), so any change moves it; one stat a scan otherwise. Read every
         time, 8,000 scans of eight clouds took 7.1 s a call (now 0.04 s), and a scan makes two
         or three calls (retention, pile ids, the page); bench/results/cache.md. A directory
-        changed within
-        the last FRESH_NS is not kept (a file system that stamps times coarsely)."""
+        changed within the last FRESH_NS is not kept (a file system that stamps times
+        coarsely)."""
         if not self.directory.is_dir():
             return []
         known, kept, out = self._read, {}, []
