@@ -33,23 +33,51 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from benchlib import header, pinned
+from benchlib import big_bin, header, pinned
 
 from silo_agent.config import Config, LiveConfig, parse_config
 from silo_agent.grid.grid import Grid
 from silo_agent.live.coverage import session_problem
 from silo_agent.live.map import DepthFrame, LiveMap
 from silo_agent.live.session import LiveSession
-from silo_agent.sim.robot import RobotRig
+from silo_agent.sim.grains import grain
+from silo_agent.sim.robot import RakingRobot, RobotRig, in_bin, mounded_bay
+from silo_agent.sim.scenes import bin_scene
 
 RATE_HZ = 2.0
 AWAY_M = 0.5
-SETUPS = {  # name -> views, width, height
-    "4 wall cameras, 848x480": (("A2", "A4", "A6", "A8"), 848, 480),
-    "4 wall cameras, 424x240": (("A2", "A4", "A6", "A8"), 424, 240),
-    "2 wall cameras, 424x240": (("A2", "A6"), 424, 240),
-    "4 wall cameras, 320x180": (("A2", "A4", "A6", "A8"), 320, 180),
+WALL_RING_M = 0.5  # a bin's cells this near its wall: where its wall's points would land
+PHANTOM_M = 1.0  # a robot found farther than this from the robot is none
+EAVE_4, EAVE_8 = ("A1", "A3", "A5", "A7"), tuple(f"A{k}" for k in range(1, 9))
+SETUPS = {  # name -> scene, views, width, height
+    "4 wall cameras, 848x480": ("bay", ("A2", "A4", "A6", "A8"), 848, 480),
+    "4 wall cameras, 424x240": ("bay", ("A2", "A4", "A6", "A8"), 424, 240),
+    "2 wall cameras, 424x240": ("bay", ("A2", "A6"), 424, 240),
+    "4 wall cameras, 320x180": ("bay", ("A2", "A4", "A6", "A8"), 320, 180),
+    "8 m bin, 4 eave cameras, 848x480": ("bin-8", EAVE_4, 848, 480),
+    "8 m bin, 8 eave cameras, 848x480": ("bin-8", EAVE_8, 848, 480),
+    "8 m bin, 8 eave cameras, 1280x720": ("bin-8", EAVE_8, 1280, 720),
+    "10 m bin, 8 eave cameras, 1280x720": ("bin-10", EAVE_8, 1280, 720),
+    "12 m bin, 8 eave cameras, 1280x720": ("bin-12", EAVE_8, 1280, 720),
 }
+BAY_SETUPS = [name for name, setup in SETUPS.items() if setup[0] == "bay"]
+
+
+def robot_for(scene: str) -> RakingRobot:
+    """The raking robot in the bay, or across the heap of a round bin (8 m, eave 6 m: a bin
+    whose eave cameras pass the session check; 10 m: the simulator's default bin, eave 7 m;
+    12 m: bench/silos.py's, eave 8 m)."""
+    if scene == "bay":
+        return RakingRobot(mounded_bay(grain("wheat")))
+    if scene == "bin-8":
+        return in_bin(
+            bin_scene(
+                grain("wheat"), name="bin-8m", diameter_m=8.0, eave_m=6.0, feature_radius_m=3.0
+            )
+        )
+    if scene == "bin-10":
+        return in_bin(bin_scene(grain("wheat"), name="bin-10m"))
+    return in_bin(big_bin(12.0))
 
 
 @dataclass
@@ -59,6 +87,8 @@ class Accuracy:
     median_mm: list[float]
     held_share: list[float]
     times: list[float]
+    wall_mm: list[float]  # a bin's cells by the wall: their highest above the grain
+    phantoms: list[int]  # robots found away from the robot
 
 
 def render(rig: RobotRig, times: np.ndarray) -> list[list[DepthFrame]]:
@@ -71,16 +101,27 @@ def render(rig: RobotRig, times: np.ndarray) -> list[list[DepthFrame]]:
     ]
 
 
-def accuracy(rig: RobotRig, frames: list[list[DepthFrame]], times: np.ndarray) -> Accuracy:
+def accuracy(
+    rig: RobotRig, frames: list[list[DepthFrame]], times: np.ndarray, bare: bool = False
+) -> Accuracy:
+    """The live map's errors at each instant; `bare`: without the bin's wall verdict."""
     site = rig.robot.base.site
     grid = Grid.over(site.region, LiveConfig().grid_step_m)
-    live = LiveMap(grid, LiveConfig(), site.ceiling_z)
+    live = LiveMap(grid, LiveConfig(), site.ceiling_z, shape=None if bare else site.bin)
     xs, ys = grid.centres()
-    out = Accuracy([], [], [], [], [])
+    ring = np.zeros(grid.shape, dtype=bool)
+    if site.bin is not None:
+        cx, cy = site.bin.centre
+        ring = (site.bin.radius_m - np.hypot(xs - cx, ys - cy) < WALL_RING_M) & (grid.inside > 0)
+    out = Accuracy([], [], [], [], [], [], [])
     for per_camera, t in zip(frames, times, strict=True):
         update = live.update(per_camera, float(t))
         truth = rig.robot.height(float(t))(xs, ys)
         pose = rig.robot.pose(float(t))
+        if ring.any():
+            out.wall_mm.append(float(np.max(update.heightmap.heights[ring] - truth[ring])) * 1000)
+        away = [r for r in update.robots if np.hypot(r.x - pose.x, r.y - pose.y) > PHANTOM_M]
+        out.phantoms.append(len(away))
         under = pose.footprint(xs, ys)
         cells = update.heightmap.observed & ~pose.footprint(xs, ys, AWAY_M)
         error = update.heightmap.heights[cells] - truth[cells]
@@ -108,7 +149,10 @@ class RenderedSource:
 
 
 def config_for(rig: RobotRig) -> Config:
+    """The setup as a site's config: the bay's sim cameras by their views; a bin's cameras by
+    their extrinsics (the session check places sim views in the bay) and its `[silo.bin]`."""
     site = rig.robot.base.site
+    shape = site.bin
     cameras = [
         {
             "serial": v.serial,
@@ -117,13 +161,26 @@ def config_for(rig: RobotRig) -> Config:
             "width": v.intrinsics.width,
             "height": v.intrinsics.height,
         }
+        if shape is None
+        else {
+            "serial": v.serial,
+            "extrinsic": v.nominal.tolist(),
+            "width": v.intrinsics.width,
+            "height": v.intrinsics.height,
+        }
         for v in rig.views
     ]
-    data = {
-        "silo": {"id": "bench", "region": site.region.tolist(), "ceiling_z": site.ceiling_z},
-        "cameras": cameras,
-    }
-    return parse_config(data, "bench")
+    silo: dict[str, object] = {"id": "bench", "region": site.region.tolist()}
+    if site.ceiling_z is not None:
+        silo["ceiling_z"] = site.ceiling_z
+    if shape is not None:
+        assert shape.diameter_m is not None
+        silo["bin"] = {
+            "diameter_m": shape.diameter_m,
+            "centre": list(shape.centre),
+            "eave_height_m": shape.eave_z - site.floor_z,
+        }
+    return parse_config({"silo": silo, "cameras": cameras}, "bench")
 
 
 def ages(config: Config, source: RenderedSource, maps: int) -> list[float]:
@@ -163,7 +220,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=16.0)
     parser.add_argument("--warm-up-s", type=float, default=3.0)
-    parser.add_argument("--setups", nargs="+", default=list(SETUPS))
+    parser.add_argument("--setups", nargs="+", default=BAY_SETUPS, choices=list(SETUPS))
+    parser.add_argument(
+        "--bare", action="store_true", help="also each bin without the wall verdict (the old map)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="the scene's noise draws")
     parser.add_argument("--cpu", type=int, default=0, help="pin to this CPU (-1: do not pin)")
     parser.add_argument("--note", default="", help="a provenance line, e.g. machine load")
@@ -178,37 +238,48 @@ def main() -> None:
         "",
         f"Moving-robot scene (noise seed {args.seed}), {args.seconds:g} s at {RATE_HZ:g} Hz "
         f"({len(times)} maps), 2 cm grid "
-        f"over 6 x 6 m, default `[live]`; mixed pixels along depth edges (half the edge pixels). "
+        f"over the region (the bay's 6 x 6 m; a bin's wall), default `[live]`; mixed pixels "
+        f"along depth edges (half the edge pixels); in a bin the robot rakes its heap down to "
+        f"the level by the wall, eave cameras, the bin's D455 noise (2.5x the ideal target's). "
         f"RMS: observed cells > {AWAY_M} m outside the footprint; footprint: the map's highest "
         f"cell above the grain under the robot (the worst map), and the median cell's (the "
         f"median map; negative: below); 'all' includes the first {args.warm_up_s:g} s. Age: "
-        f"the real session at {RATE_HZ:g} Hz, pinned to one core.",
+        f"the real session at {RATE_HZ:g} Hz, pinned to one core. Wall ring: a bin's cells "
+        f"within {WALL_RING_M:g} m of the wall, their highest above the grain (the worst map "
+        f"after warm-up); phantoms: robots found more than {PHANTOM_M:g} m from the robot "
+        f"(the most in a map after warm-up). 'without the wall verdict': the same frames "
+        f"through the map as it was before it knew the bin's wall.",
         "",
         "| setup | session check | maps >= a period old | median age s | RMS mm (median, worst) "
         "| footprint mm, worst after warm-up | footprint mm, worst of all "
-        "| footprint mm, median | footprint held |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| footprint mm, median | footprint held | wall ring mm | phantoms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in args.setups:
-        views, width, height = SETUPS[name]
-        rig = RobotRig(views=views, width=width, height=height, seed=args.seed)
+        scene, views, width, height = SETUPS[name]
+        rig = RobotRig(robot_for(scene), views=views, width=width, height=height, seed=args.seed)
         config = config_for(rig)
         problem = session_problem(config, [v.serial for v in rig.views])
         frames = render(rig, times)
-        acc = accuracy(rig, frames, times)
-        warm = [k for k, t in enumerate(acc.times) if t >= args.warm_up_s]
+        runs = [(name, accuracy(rig, frames, times))]
+        if args.bare and rig.robot.base.bin is not None:
+            runs.append((f"{name}, without the wall verdict", accuracy(rig, frames, times, True)))
         age = ages(config, RenderedSource(frames, times), len(times))
         old = float(np.mean(np.asarray(age) >= period)) if age else float("nan")
-        rms = [acc.rms_mm[k] for k in warm]
-        lines.append(
-            f"| {name} | {'accepted' if problem is None else 'refused'} | {old:.0%} "
-            f"| {np.median(age):.3f} | {np.median(rms):.1f}, {max(rms):.1f} "
-            f"| {max(acc.excess_mm[k] for k in warm):.0f} | {max(acc.excess_mm):.0f} "
-            f"| {np.median([acc.median_mm[k] for k in warm]):.0f} | {min(acc.held_share):.0%} |"
-        )
+        for label, acc in runs:
+            warm = [k for k, t in enumerate(acc.times) if t >= args.warm_up_s]
+            rms = [acc.rms_mm[k] for k in warm]
+            wall = f"{max(acc.wall_mm[k] for k in warm):.0f}" if acc.wall_mm else "-"
+            lines.append(
+                f"| {label} | {'accepted' if problem is None else 'refused'} | {old:.0%} "
+                f"| {np.median(age):.3f} | {np.median(rms):.1f}, {max(rms):.1f} "
+                f"| {max(acc.excess_mm[k] for k in warm):.0f} | {max(acc.excess_mm):.0f} "
+                f"| {np.median([acc.median_mm[k] for k in warm]):.0f} "
+                f"| {min(acc.held_share):.0%} | {wall} | {max(acc.phantoms[k] for k in warm)} |"
+            )
+            print(lines[-1], flush=True)
         if problem is not None:
-            lines.append(f"|  | refused: {problem} | | | | | | | |")
-        print(lines[-1], flush=True)
+            lines.append(f"|  | refused: {problem} | | | | | | | | | |")
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

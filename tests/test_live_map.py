@@ -11,7 +11,9 @@ import pytest
 from silo_agent.config import LiveConfig
 from silo_agent.grid.grid import Grid
 from silo_agent.live.map import DepthFrame, LiveMap, LiveUpdate
-from silo_agent.sim.robot import RakingRobot, RobotPose, RobotRig
+from silo_agent.sim.grains import grain
+from silo_agent.sim.robot import RakingRobot, RobotPose, RobotRig, in_bin
+from silo_agent.sim.scenes import bin_scene
 from tests.support.robot import robot_rig
 
 TIMES = np.arange(0.0, 10.5, 0.5)  # the robot climbs the first heap from t ~ 4 s
@@ -146,3 +148,28 @@ def test_a_far_cameras_points_count_by_their_depth_noise() -> None:
     inside = np.isfinite(both)
     assert np.all(variance[inside] <= pixel_rms**2 * (1 + 1e-6))
     assert np.all(variance[inside] >= pixel_rms**2 / 2)
+
+
+def test_a_bins_far_wall_is_not_grain() -> None:
+    """An 8 m bin (eave 6 m) seen by four eave cameras, each looking across at the far wall
+    over most of its image: depth noise throws the wall's points along their rays into the
+    bin, and the cells by the wall read them as grain, half a metre high on the median and
+    up to 2 m (the map before it knew the wall). Judged by its ray, as the full scan judges
+    it, a pixel that saw the wall above the grain is not a point of the grain: the ring by
+    the wall reads the grain within centimetres, against the scene's exact surface."""
+    scene = bin_scene(grain("wheat"), name="bin-8m", diameter_m=8.0, eave_m=6.0)
+    rig = robot_rig(robot=in_bin(scene), views=("A1", "A3", "A5", "A7"), width=424, height=240)
+    site = scene.site
+    assert site.bin is not None
+    grid = Grid.over(site.region, 0.05)
+    xs, ys = grid.centres()
+    from_wall = site.bin.radius_m - np.hypot(xs - site.bin.centre[0], ys - site.bin.centre[1])
+    ring = (from_wall < 0.5) & (grid.inside > 0)
+    live = LiveMap(grid, LiveConfig(grid_step_m=0.05), site.ceiling_z, shape=site.bin)
+    times = (0.0, 0.5, 1.0)
+    for index, t in enumerate(times):
+        update = live.update(depth_frames(rig, t, index), t)
+    error = (update.heightmap.heights - rig.robot.height(times[-1])(xs, ys))[ring]
+    assert abs(float(np.median(error))) < 0.1
+    assert float(np.mean(error)) < 0.15
+    assert float(np.percentile(error, 95)) < 0.5

@@ -42,8 +42,10 @@ from scipy import ndimage
 
 from silo_agent.base.d455 import BASELINE_M, CORRELATED_SHARE, depth_rms_m
 from silo_agent.config import LiveConfig
+from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
+from silo_agent.reconstruct.walls import WALL_CLEARANCE_M, cell_inward
 
 if TYPE_CHECKING:
     from silo_agent.sim.camera import Frame
@@ -209,9 +211,13 @@ def _rays_key(frame: DepthFrame) -> tuple[object, ...]:
 
 
 class _Rays:
-    """Silo-frame ray of every (decimated) pixel of one camera, scaled to unit depth."""
+    """Silo-frame ray of every (decimated) pixel of one camera, scaled to unit depth, and in a
+    bin where it meets the wall: the height there and the cell just inside (`wall_z`,
+    `wall_cell`; None without a bin)."""
 
-    def __init__(self, frame: DepthFrame, decimation: int) -> None:
+    def __init__(
+        self, frame: DepthFrame, decimation: int, shape: BinShape | None, grid: Grid
+    ) -> None:
         h, w = frame.depth.shape
         v, u = np.mgrid[0:h:decimation, 0:w:decimation]
         rotation = np.asarray(frame.extrinsic, dtype=np.float64)[:3, :3]
@@ -229,6 +235,18 @@ class _Rays:
         per_depth = depth_rms_m(1.0, frame.fx)
         self.weight = np.float32(1.0 / np.square(per_depth))
         self.key = _rays_key(frame)
+        self.wall_z: np.ndarray | None = None
+        self.wall_cell: np.ndarray | None = None
+        if shape is not None:
+            ox, oy, oz = (float(a) for a in self.origin)
+            depth = shape.ray_wall_depth(ox, oy, silo[:, 0], silo[:, 1])
+            finite = np.isfinite(depth)
+            reach = np.where(finite, depth, 0.0)
+            x, y = ox + silo[:, 0] * reach, oy + silo[:, 1] * reach
+            # -inf: a ray that never meets the wall is never the wall's
+            self.wall_z = np.where(finite, oz + silo[:, 2] * reach, -np.inf).astype(np.float32)
+            row, col = cell_inward(shape, grid, x, y)
+            self.wall_cell = (row * grid.shape[1] + col).astype(np.intp)
 
 
 class LiveMap:
@@ -240,12 +258,15 @@ class LiveMap:
         settings: LiveConfig,
         ceiling_z: float | None = None,
         start: HeightMap | None = None,
+        shape: BinShape | None = None,
     ) -> None:
         """`start`, the last full scan's map on the same grid, gives cells not yet seen live a
-        value; without it they take their nearest seen cell's."""
+        value; without it they take their nearest seen cell's. `shape`, a bin's: the pixels
+        that saw its wall are not grain (`frame_heights`)."""
         self.grid = grid
         self.settings = settings
         self.ceiling_z = np.inf if ceiling_z is None else ceiling_z
+        self.shape = shape
         self.region = grid.inside > 0
         self.height = np.full(grid.shape, np.nan)
         if start is not None and (start.heights.shape, start.step, start.origin) == (
@@ -281,14 +302,28 @@ class LiveMap:
     def _rays_of(self, frame: DepthFrame) -> _Rays:
         rays = self._rays.get(frame.serial)
         if rays is None or rays.key != _rays_key(frame):
-            rays = self._rays[frame.serial] = _Rays(frame, self.settings.decimation)
+            rays = _Rays(frame, self.settings.decimation, self.shape, self.grid)
+            self._rays[frame.serial] = rays
         return rays
 
     def frame_heights(self, frames: list[DepthFrame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per cell the frames' points' height, weighted by the D455's noise at each point's
-        range (NaN: none), the point counts, and the weighted height's variance."""
+        range (NaN: none), the point counts, and the weighted height's variance.
+
+        In a bin, a pixel whose ray meets the wall more than WALL_CLEARANCE_M above the grain
+        there (the map so far, 1.5 cells inside the wall; the floor before anything is
+        measured) saw the wall, whatever depth noise made of it, and is left out: the full
+        scan's verdict (reconstruct/walls.py). Depth noise throws the points of a far wall a
+        camera looks across up to metres along their rays, into the bin: a 10 m bin seen by
+        four eave cameras read 1.1-1.5 m high in the ring 0.5 m wide by the wall, and found
+        robots there (bench/live_bin.py)."""
         rows, cols = self._limits
         n_cells = rows * cols
+        wall_level = None
+        if self.shape is not None:
+            level = self._filled().ravel()
+            wall_level = np.where(np.isfinite(level), level, self.shape.floor_z)
+            wall_level += WALL_CLEARANCE_M
         count: np.ndarray = np.zeros(n_cells)  # flat while summing, then (rows, cols)
         weight: np.ndarray = np.zeros(n_cells)
         total: np.ndarray = np.zeros(n_cells)
@@ -301,6 +336,9 @@ class LiveMap:
             )
             depth = image.ravel()
             valid = np.flatnonzero((depth > 0) & ~mixed.ravel())
+            if rays.wall_z is not None and wall_level is not None and rays.wall_cell is not None:
+                below = rays.wall_z[valid] <= wall_level[rays.wall_cell[valid]]
+                valid = valid[below]
             z_cam = depth[valid].astype(np.float32) * np.float32(frame.depth_unit_m)
             ox, oy, oz = rays.origin
             col = ((ox + z_cam * rays.x[valid] - self._origin[0]) * self._scale).astype(np.int64)

@@ -246,7 +246,7 @@ def steadied(cloud: CameraCloud, noise_factor: float) -> CameraCloud:
     return replace(cloud, points=points)
 
 
-def _cell_inward(
+def cell_inward(
     shape: BinShape, grid: Grid, x: np.ndarray, y: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """(row, col) of the cell whose surface gives the grain height at wall points (x, y):
@@ -268,7 +268,7 @@ def _cell_inward(
 @dataclass(frozen=True)
 class WallCrossing:
     """What `wall_free` reads of one camera's rays, per point: the cell of the first pass's
-    grid that gives the grain height at the wall there (`_cell_inward`'s), and the height at
+    grid that gives the grain height at the wall there (`cell_inward`'s), and the height at
     which the ray meets the wall, rounded to float32. 6 bytes a point (8 on a grid of over
     65536 cells) where a whole cloud's float64 rays took 29: they are kept through the first pass (8
     full-resolution cameras: 44 MB against 214 MB).
@@ -310,9 +310,9 @@ class WallCrossing:
 
 
 def _cell_of(shape: BinShape, grid: Grid, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """`_cell_inward`'s cell as a flat index into `grid`: uint16 where the grid's cells fit
+    """`cell_inward`'s cell as a flat index into `grid`: uint16 where the grid's cells fit
     (a first pass's 10 cm grid over a bin up to 25 m across), else int32 (base/limits.py)."""
-    row, col = _cell_inward(shape, grid, x, y)
+    row, col = cell_inward(shape, grid, x, y)
     cell = row.astype(_cell_dtype(grid))
     cell *= grid.shape[1]
     cell += col.astype(cell.dtype)

@@ -1,4 +1,5 @@
-"""A moving scene: a leveling robot drives a straight path across a walled bay and rakes it.
+"""A moving scene: a leveling robot drives a straight path across a walled bay (or a bin,
+`in_bin`) and rakes it.
 
 The robot is a box (0.6 x 0.4 x 0.3 m) dragging a 1 m wide rake at its rear edge: behind the
 rake the grain is cut down to `rake_z` across the rake's width and slumps at its angle of
@@ -19,7 +20,7 @@ from silo_agent.scan import Site
 from silo_agent.sim.camera import Frame, NoiseModel, expose, trace
 from silo_agent.sim.grains import Grain, grain
 from silo_agent.sim.layouts import view_pose
-from silo_agent.sim.mesh import CLUTTER, Mesh, World, height_field_mesh
+from silo_agent.sim.mesh import CLUTTER, Mesh, World, build_world
 from silo_agent.sim.raycast import Raycaster
 from silo_agent.sim.scenes import (
     BAY_CAMERA_Z,
@@ -79,6 +80,12 @@ def mounded_bay(g: Grain) -> Scene:
     )
 
 
+def in_bin(scene: Scene) -> RakingRobot:
+    """The robot raking `scene`, a bin (scenes.bin_scene), along PATH across its centre: its
+    heap cut down to the grain's level by the wall, seen by the bin's eave cameras."""
+    return RakingRobot(scene, rake_z=float(scene.params["grain_min_z"]) + RAKE_CLEARANCE_M)
+
+
 @dataclass(frozen=True)
 class RobotPose:
     x: float
@@ -97,7 +104,8 @@ class RobotPose:
 
 @dataclass(frozen=True)
 class RakingRobot:
-    """The robot's drive over `base` (a walled bay scene): everything a function of time."""
+    """The robot's drive over `base` (the walled bay, or a bin: `in_bin`): everything a
+    function of time."""
 
     base: Scene
     path: tuple[tuple[float, float], tuple[float, float]] = PATH
@@ -151,8 +159,9 @@ class RakingRobot:
         )
 
     def world(self, t: float, mesh_step: float = 0.01) -> World:
+        """The grain at time t, a bin's wall and roof if the base is a bin, and the robot."""
         snapshot = replace(self.base, height=self.height(t))
-        return World((height_field_mesh(snapshot, mesh_step), robot_mesh(self.pose(t))))
+        return World((*build_world(snapshot, mesh_step).meshes, robot_mesh(self.pose(t))))
 
 
 def robot_mesh(pose: RobotPose) -> Mesh:
@@ -177,7 +186,8 @@ def robot_mesh(pose: RobotPose) -> Mesh:
 
 
 class RobotRig:
-    """Renders the moving scene from wall cameras: one noisy depth frame per camera per instant."""
+    """Renders the moving scene from its cameras (a bay's wall cameras, a bin's eave ones): one
+    noisy depth frame per camera per instant, with the scene's D455 noise and depth range."""
 
     def __init__(
         self,
@@ -192,14 +202,18 @@ class RobotRig:
         """`mesh_step` 0.01 m keeps the rendered surface within a millimetre of the truth;
         coarser builds the moving world faster (the daemon's demo, not the accuracy tests)."""
         self.robot = robot or RakingRobot(mounded_bay(grain("wheat")))
-        self.noise = noise or NoiseModel(mixed_edge_share=MIXED_EDGE_SHARE)
+        self.noise = noise or NoiseModel(
+            mixed_edge_share=MIXED_EDGE_SHARE,
+            surface_factor=self.robot.base.surface_factor,
+            max_depth_m=self.robot.base.max_depth_m,
+        )
         self.seed = seed
         self.mesh_step = mesh_step
         self.views: list[SimView] = [
             plan_view(
                 v,
                 serial_for(v),
-                view_pose(self.robot.base, v, "wall"),
+                view_pose(self.robot.base, v),
                 seed,
                 (0.0, 0.0),
                 width,
