@@ -55,6 +55,7 @@ SETUPS = {  # name -> scene, views, width, height
     "2 wall cameras, 424x240": ("bay", ("A2", "A6"), 424, 240),
     "4 wall cameras, 320x180": ("bay", ("A2", "A4", "A6", "A8"), 320, 180),
     "8 m bin, 4 eave cameras, 848x480": ("bin-8", EAVE_4, 848, 480),
+    "8 m bin, 8 eave cameras, 424x240": ("bin-8", EAVE_8, 424, 240),
     "8 m bin, 8 eave cameras, 848x480": ("bin-8", EAVE_8, 848, 480),
     "8 m bin, 8 eave cameras, 1280x720": ("bin-8", EAVE_8, 1280, 720),
     "10 m bin, 8 eave cameras, 1280x720": ("bin-10", EAVE_8, 1280, 720),
@@ -107,7 +108,13 @@ def accuracy(
     """The live map's errors at each instant; `bare`: without the bin's wall verdict."""
     site = rig.robot.base.site
     grid = Grid.over(site.region, LiveConfig().grid_step_m)
-    live = LiveMap(grid, LiveConfig(), site.ceiling_z, shape=None if bare else site.bin)
+    live = LiveMap(
+        grid,
+        LiveConfig(),
+        site.ceiling_z,
+        shape=None if bare else site.bin,
+        noise_factor=rig.robot.base.surface_factor,  # what the site's config says
+    )
     xs, ys = grid.centres()
     ring = np.zeros(grid.shape, dtype=bool)
     if site.bin is not None:
@@ -180,7 +187,11 @@ def config_for(rig: RobotRig) -> Config:
             "centre": list(shape.centre),
             "eave_height_m": shape.eave_z - site.floor_z,
         }
-    return parse_config({"silo": silo, "cameras": cameras}, "bench")
+    # the site's cameras are as noisy as the scene's simulated ones
+    reconstruction = {"depth_noise_factor": rig.robot.base.surface_factor}
+    return parse_config(
+        {"silo": silo, "cameras": cameras, "reconstruction": reconstruction}, "bench"
+    )
 
 
 def ages(config: Config, source: RenderedSource, maps: int) -> list[float]:

@@ -156,7 +156,10 @@ def test_a_bins_far_wall_is_not_grain() -> None:
     bin, and the cells by the wall read them as grain, half a metre high on the median and
     up to 2 m (the map before it knew the wall). Judged by its ray, as the full scan judges
     it, a pixel that saw the wall above the grain is not a point of the grain: the ring by
-    the wall reads the grain within centimetres, against the scene's exact surface."""
+    the wall reads the grain within centimetres, against the scene's exact surface. From the
+    first map: with no height yet to judge the wall by, a first pass of the depths short of
+    the wall gives one (taken as the floor, the ring by the wall read 0.22 m low on the
+    median and its rims passed for robots)."""
     scene = bin_scene(grain("wheat"), name="bin-8m", diameter_m=8.0, eave_m=6.0)
     rig = robot_rig(robot=in_bin(scene), views=("A1", "A3", "A5", "A7"), width=424, height=240)
     site = scene.site
@@ -165,11 +168,13 @@ def test_a_bins_far_wall_is_not_grain() -> None:
     xs, ys = grid.centres()
     from_wall = site.bin.radius_m - np.hypot(xs - site.bin.centre[0], ys - site.bin.centre[1])
     ring = (from_wall < 0.5) & (grid.inside > 0)
-    live = LiveMap(grid, LiveConfig(grid_step_m=0.05), site.ceiling_z, shape=site.bin)
+    live = LiveMap(
+        grid, LiveConfig(grid_step_m=0.05), site.ceiling_z, shape=site.bin, noise_factor=2.5
+    )
     times = (0.0, 0.5, 1.0)
     for index, t in enumerate(times):
         update = live.update(depth_frames(rig, t, index), t)
-    error = (update.heightmap.heights - rig.robot.height(times[-1])(xs, ys))[ring]
-    assert abs(float(np.median(error))) < 0.1
+        error = (update.heightmap.heights - rig.robot.height(t)(xs, ys))[ring]
+        assert abs(float(np.median(error))) < 0.1, f"t={t}"
     assert float(np.mean(error)) < 0.15
     assert float(np.percentile(error, 95)) < 0.5

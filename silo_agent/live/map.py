@@ -45,7 +45,12 @@ from silo_agent.config import LiveConfig
 from silo_agent.grid.bin_shape import BinShape
 from silo_agent.grid.grid import Grid
 from silo_agent.grid.heightmap import HeightMap
-from silo_agent.reconstruct.walls import WALL_CLEARANCE_M, cell_inward
+from silo_agent.reconstruct.walls import (
+    FIRST_PASS_MIN_MARGIN_M,
+    FIRST_PASS_SIGMAS,
+    WALL_CLEARANCE_M,
+    cell_inward,
+)
 
 if TYPE_CHECKING:
     from silo_agent.sim.camera import Frame
@@ -216,7 +221,12 @@ class _Rays:
     `wall_cell`; None without a bin)."""
 
     def __init__(
-        self, frame: DepthFrame, decimation: int, shape: BinShape | None, grid: Grid
+        self,
+        frame: DepthFrame,
+        decimation: int,
+        shape: BinShape | None,
+        grid: Grid,
+        noise_factor: float = 1.0,
     ) -> None:
         h, w = frame.depth.shape
         v, u = np.mgrid[0:h:decimation, 0:w:decimation]
@@ -237,6 +247,7 @@ class _Rays:
         self.key = _rays_key(frame)
         self.wall_z: np.ndarray | None = None
         self.wall_cell: np.ndarray | None = None
+        self.clear_depth: np.ndarray | None = None
         if shape is not None:
             ox, oy, oz = (float(a) for a in self.origin)
             depth = shape.ray_wall_depth(ox, oy, silo[:, 0], silo[:, 1])
@@ -247,6 +258,11 @@ class _Rays:
             self.wall_z = np.where(finite, oz + silo[:, 2] * reach, -np.inf).astype(np.float32)
             row, col = cell_inward(shape, grid, x, y)
             self.wall_cell = (row * grid.shape[1] + col).astype(np.intp)
+            # a depth this far short of the wall's is not the wall's, whatever the grain's
+            # height: FIRST_PASS_SIGMAS of a pixel's noise there (the full scan's first pass)
+            rms = depth_rms_m(reach, frame.fx, noise_factor)
+            margin = np.maximum(FIRST_PASS_MIN_MARGIN_M, FIRST_PASS_SIGMAS * rms)
+            self.clear_depth = np.where(finite, depth - margin, np.inf).astype(np.float32)
 
 
 class LiveMap:
@@ -259,14 +275,17 @@ class LiveMap:
         ceiling_z: float | None = None,
         start: HeightMap | None = None,
         shape: BinShape | None = None,
+        noise_factor: float = 1.0,
     ) -> None:
         """`start`, the last full scan's map on the same grid, gives cells not yet seen live a
         value; without it they take their nearest seen cell's. `shape`, a bin's: the pixels
-        that saw its wall are not grain (`frame_heights`)."""
+        that saw its wall are not grain (`frame_heights`), judged with the cameras' depth RMS
+        `noise_factor` times the ideal target's (`[reconstruction] depth_noise_factor`)."""
         self.grid = grid
         self.settings = settings
         self.ceiling_z = np.inf if ceiling_z is None else ceiling_z
         self.shape = shape
+        self.noise_factor = noise_factor
         self.region = grid.inside > 0
         self.height = np.full(grid.shape, np.nan)
         if start is not None and (start.heights.shape, start.step, start.origin) == (
@@ -302,7 +321,7 @@ class LiveMap:
     def _rays_of(self, frame: DepthFrame) -> _Rays:
         rays = self._rays.get(frame.serial)
         if rays is None or rays.key != _rays_key(frame):
-            rays = _Rays(frame, self.settings.decimation, self.shape, self.grid)
+            rays = _Rays(frame, self.settings.decimation, self.shape, self.grid, self.noise_factor)
             self._rays[frame.serial] = rays
         return rays
 
@@ -311,19 +330,39 @@ class LiveMap:
         range (NaN: none), the point counts, and the weighted height's variance.
 
         In a bin, a pixel whose ray meets the wall more than WALL_CLEARANCE_M above the grain
-        there (the map so far, 1.5 cells inside the wall; the floor before anything is
-        measured) saw the wall, whatever depth noise made of it, and is left out: the full
-        scan's verdict (reconstruct/walls.py). Depth noise throws the points of a far wall a
-        camera looks across up to metres along their rays, into the bin: a 10 m bin seen by
-        four eave cameras read 1.1-1.5 m high in the ring 0.5 m wide by the wall, and found
-        robots there (bench/live_bin.py)."""
-        rows, cols = self._limits
-        n_cells = rows * cols
+        there (the map so far, 1.5 cells inside the wall) saw the wall, whatever depth noise
+        made of it, and is left out: the full scan's verdict (reconstruct/walls.py). Depth
+        noise throws the points of a far wall a camera looks across up to metres along their
+        rays, into the bin: an 8 m bin seen by eight eave cameras read up to 2.6 m high in
+        the ring by the wall (bench/live_robot.py). Before the map has a height (a session's
+        first frames, without a full scan's map to start from) the grain at the wall comes
+        from a first pass of the pixels whose depth is short of the wall's by three times its
+        noise, as the full scan's first pass: with the floor for it, the grain by the wall
+        was left out and the points noise carried there from farther in read it 0.3 m low,
+        a ring of holes whose rims passed for robots."""
         wall_level = None
         if self.shape is not None:
-            level = self._filled().ravel()
-            wall_level = np.where(np.isfinite(level), level, self.shape.floor_z)
+            level = self._filled()
+            if not np.isfinite(level).any():
+                first = self._frame_heights(frames, None)[0]
+                known = np.isfinite(first)
+                level = first
+                if known.any() and not known.all():
+                    nearest = ndimage.distance_transform_edt(
+                        ~known, return_distances=False, return_indices=True
+                    )
+                    level = first[tuple(nearest)]
+            wall_level = np.where(np.isfinite(level), level, self.shape.floor_z).ravel()
             wall_level += WALL_CLEARANCE_M
+        return self._frame_heights(frames, wall_level)
+
+    def _frame_heights(
+        self, frames: list[DepthFrame], wall_level: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`frame_heights` with the wall judged against `wall_level` (flat, per cell), or in
+        a bin without it by depth alone (the first pass)."""
+        rows, cols = self._limits
+        n_cells = rows * cols
         count: np.ndarray = np.zeros(n_cells)  # flat while summing, then (rows, cols)
         weight: np.ndarray = np.zeros(n_cells)
         total: np.ndarray = np.zeros(n_cells)
@@ -336,9 +375,12 @@ class LiveMap:
             )
             depth = image.ravel()
             valid = np.flatnonzero((depth > 0) & ~mixed.ravel())
-            if rays.wall_z is not None and wall_level is not None and rays.wall_cell is not None:
-                below = rays.wall_z[valid] <= wall_level[rays.wall_cell[valid]]
-                valid = valid[below]
+            if rays.wall_z is not None and rays.wall_cell is not None:
+                if wall_level is not None:
+                    valid = valid[rays.wall_z[valid] <= wall_level[rays.wall_cell[valid]]]
+                elif rays.clear_depth is not None:
+                    reading = depth[valid] * np.float32(frame.depth_unit_m)
+                    valid = valid[reading < rays.clear_depth[valid]]
             z_cam = depth[valid].astype(np.float32) * np.float32(frame.depth_unit_m)
             ox, oy, oz = rays.origin
             col = ((ox + z_cam * rays.x[valid] - self._origin[0]) * self._scale).astype(np.int64)

@@ -135,7 +135,14 @@ class LiveSession:
         site = config.silo
         # `region`, or a bin's wall (a bin config may give no `region`)
         grid = Grid.over(site.region_polygon(), config.live.grid_step_m)
-        self.map = LiveMap(grid, config.live, site.ceiling_z, start_map, site.bin_shape())
+        self.map = LiveMap(
+            grid,
+            config.live,
+            site.ceiling_z,
+            start_map,
+            site.bin_shape(),
+            config.reconstruction.depth_noise_factor,
+        )
         self.stats = LiveStats()
         self._publish = publish
         self._on_end = on_end
