@@ -3,6 +3,7 @@ watch a robot rake the first of two heaps, one map every half second (the defaul
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,7 +14,7 @@ from silo_agent.grid.grid import Grid
 from silo_agent.live.map import DepthFrame, LiveMap, LiveUpdate
 from silo_agent.sim.grains import grain
 from silo_agent.sim.robot import RakingRobot, RobotPose, RobotRig, in_bin
-from silo_agent.sim.scenes import bin_scene
+from silo_agent.sim.scenes import Scene, bin_scene
 from tests.support.robot import robot_rig
 
 TIMES = np.arange(0.0, 10.5, 0.5)  # the robot climbs the first heap from t ~ 4 s
@@ -150,6 +151,26 @@ def test_a_far_cameras_points_count_by_their_depth_noise() -> None:
     assert np.all(variance[inside] >= pixel_rms**2 / 2)
 
 
+def ring_errors(
+    scene: Scene, views: tuple[str, ...], times: tuple[float, ...], **size: int
+) -> Iterator[tuple[float, np.ndarray]]:
+    """Each map's error (map - the exact surface) in the cells within 0.5 m of the bin's
+    wall, the map judging the wall with the simulated bins' noise factor (2.5), 5 cm grid."""
+    rig = robot_rig(robot=in_bin(scene), views=views, **size)
+    site = scene.site
+    assert site.bin is not None
+    grid = Grid.over(site.region, 0.05)
+    xs, ys = grid.centres()
+    from_wall = site.bin.radius_m - np.hypot(xs - site.bin.centre[0], ys - site.bin.centre[1])
+    ring = (from_wall < 0.5) & (grid.inside > 0)
+    live = LiveMap(
+        grid, LiveConfig(grid_step_m=0.05), site.ceiling_z, shape=site.bin, noise_factor=2.5
+    )
+    for index, t in enumerate(times):
+        update = live.update(depth_frames(rig, t, index), t)
+        yield t, (update.heightmap.heights - rig.robot.height(t)(xs, ys))[ring]
+
+
 def test_a_bins_far_wall_is_not_grain() -> None:
     """An 8 m bin (eave 6 m) seen by four eave cameras, each looking across at the far wall
     over most of its image: depth noise throws the wall's points along their rays into the
@@ -161,20 +182,8 @@ def test_a_bins_far_wall_is_not_grain() -> None:
     the wall gives one (taken as the floor, the ring by the wall read 0.22 m low on the
     median and its rims passed for robots)."""
     scene = bin_scene(grain("wheat"), name="bin-8m", diameter_m=8.0, eave_m=6.0)
-    rig = robot_rig(robot=in_bin(scene), views=("A1", "A3", "A5", "A7"), width=424, height=240)
-    site = scene.site
-    assert site.bin is not None
-    grid = Grid.over(site.region, 0.05)
-    xs, ys = grid.centres()
-    from_wall = site.bin.radius_m - np.hypot(xs - site.bin.centre[0], ys - site.bin.centre[1])
-    ring = (from_wall < 0.5) & (grid.inside > 0)
-    live = LiveMap(
-        grid, LiveConfig(grid_step_m=0.05), site.ceiling_z, shape=site.bin, noise_factor=2.5
-    )
-    times = (0.0, 0.5, 1.0)
-    for index, t in enumerate(times):
-        update = live.update(depth_frames(rig, t, index), t)
-        error = (update.heightmap.heights - rig.robot.height(t)(xs, ys))[ring]
+    views = ("A1", "A3", "A5", "A7")
+    for t, error in ring_errors(scene, views, (0.0, 0.5, 1.0), width=424, height=240):
         assert abs(float(np.median(error))) < 0.1, f"t={t}"
     assert float(np.mean(error)) < 0.15
     assert float(np.percentile(error, 95)) < 0.5
@@ -195,18 +204,7 @@ def test_a_patch_of_wall_points_does_not_raise_the_grain_the_wall_is_judged_by()
         level_m=2.0,
         feature_radius_m=4.0,
     )
-    rig = robot_rig(robot=in_bin(scene), views=tuple(f"A{k}" for k in range(1, 9)))
-    site = scene.site
-    assert site.bin is not None
-    grid = Grid.over(site.region, 0.05)
-    xs, ys = grid.centres()
-    from_wall = site.bin.radius_m - np.hypot(xs - site.bin.centre[0], ys - site.bin.centre[1])
-    ring = (from_wall < 0.5) & (grid.inside > 0)
-    live = LiveMap(
-        grid, LiveConfig(grid_step_m=0.05), site.ceiling_z, shape=site.bin, noise_factor=2.5
-    )
-    for index, t in enumerate((0.0, 0.5)):
-        update = live.update(depth_frames(rig, t, index), t)
-        error = (update.heightmap.heights - rig.robot.height(t)(xs, ys))[ring]
+    views = tuple(f"A{k}" for k in range(1, 9))
+    for t, error in ring_errors(scene, views, (0.0, 0.5)):
         assert float(np.percentile(error, 99)) < 0.4, f"t={t}"
         assert float(np.max(error)) < 1.0, f"t={t}"

@@ -227,7 +227,7 @@ class _Rays:
         decimation: int,
         shape: BinShape | None,
         grid: Grid,
-        noise_factor: float = 1.0,
+        noise_factor: float,
     ) -> None:
         h, w = frame.depth.shape
         v, u = np.mgrid[0:h:decimation, 0:w:decimation]
