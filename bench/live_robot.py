@@ -103,14 +103,19 @@ def render(rig: RobotRig, times: np.ndarray) -> list[list[DepthFrame]]:
 
 
 def accuracy(
-    rig: RobotRig, frames: list[list[DepthFrame]], times: np.ndarray, bare: bool = False
+    rig: RobotRig,
+    frames: list[list[DepthFrame]],
+    times: np.ndarray,
+    bare: bool = False,
+    settings: LiveConfig | None = None,
 ) -> Accuracy:
     """The live map's errors at each instant; `bare`: without the bin's wall verdict."""
     site = rig.robot.base.site
-    grid = Grid.over(site.region, LiveConfig().grid_step_m)
+    settings = settings or LiveConfig()
+    grid = Grid.over(site.region, settings.grid_step_m)
     live = LiveMap(
         grid,
-        LiveConfig(),
+        settings,
         site.ceiling_z,
         shape=None if bare else site.bin,
         noise_factor=rig.robot.base.surface_factor,  # what the site's config says
@@ -155,7 +160,7 @@ class RenderedSource:
         """Nothing to release."""
 
 
-def config_for(rig: RobotRig) -> Config:
+def config_for(rig: RobotRig, live: dict[str, object] | None = None) -> Config:
     """The setup as a site's config: the bay's sim cameras by their views; a bin's cameras by
     their extrinsics (the session check places sim views in the bay) and its `[silo.bin]`."""
     site = rig.robot.base.site
@@ -189,9 +194,8 @@ def config_for(rig: RobotRig) -> Config:
         }
     # the site's cameras are as noisy as the scene's simulated ones
     reconstruction = {"depth_noise_factor": rig.robot.base.surface_factor}
-    return parse_config(
-        {"silo": silo, "cameras": cameras, "reconstruction": reconstruction}, "bench"
-    )
+    data = {"silo": silo, "cameras": cameras, "reconstruction": reconstruction}
+    return parse_config(data | ({"live": live} if live else {}), "bench")
 
 
 def ages(config: Config, source: RenderedSource, maps: int) -> list[float]:
@@ -235,6 +239,7 @@ def main() -> None:
     parser.add_argument(
         "--bare", action="store_true", help="also each bin without the wall verdict (the old map)"
     )
+    parser.add_argument("--decimation", type=int, default=1, help="[live] decimation")
     parser.add_argument("--seed", type=int, default=0, help="the scene's noise draws")
     parser.add_argument("--cpu", type=int, default=0, help="pin to this CPU (-1: do not pin)")
     parser.add_argument("--note", default="", help="a provenance line, e.g. machine load")
@@ -249,7 +254,8 @@ def main() -> None:
         "",
         f"Moving-robot scene (noise seed {args.seed}), {args.seconds:g} s at {RATE_HZ:g} Hz "
         f"({len(times)} maps), 2 cm grid "
-        f"over the region (the bay's 6 x 6 m; a bin's wall), default `[live]`; mixed pixels "
+        f"over the region (the bay's 6 x 6 m; a bin's wall), default `[live]` but "
+        f"`decimation = {args.decimation}`; mixed pixels "
         f"along depth edges (half the edge pixels); in a bin the robot rakes its heap down to "
         f"the level by the wall, eave cameras, the bin's D455 noise (2.5x the ideal target's). "
         f"RMS: observed cells > {AWAY_M} m outside the footprint; footprint: the map's highest "
@@ -269,12 +275,13 @@ def main() -> None:
     for name in args.setups:
         scene, views, width, height = SETUPS[name]
         rig = RobotRig(robot_for(scene), views=views, width=width, height=height, seed=args.seed)
-        config = config_for(rig)
+        config = config_for(rig, {"decimation": args.decimation})
         problem = session_problem(config, [v.serial for v in rig.views])
         frames = render(rig, times)
-        runs = [(name, accuracy(rig, frames, times))]
+        runs = [(name, accuracy(rig, frames, times, settings=config.live))]
         if args.bare and rig.robot.base.bin is not None:
-            runs.append((f"{name}, without the wall verdict", accuracy(rig, frames, times, True)))
+            bare = accuracy(rig, frames, times, True, config.live)
+            runs.append((f"{name}, without the wall verdict", bare))
         age = ages(config, RenderedSource(frames, times), len(times))
         old = float(np.mean(np.asarray(age) >= period)) if age else float("nan")
         for label, acc in runs:
