@@ -2,8 +2,9 @@
 map stands above the grain in the robot's footprint, per camera setup.
 
 The moving-robot scene (sim/robot.py: wall cameras, a robot raking the first of two heaps at
-0.3 m/s, D455 noise with mixed pixels along depth edges) is rendered at the instants of a
-2 Hz session (`--seconds` long; not timed). Then:
+0.3 m/s, D455 noise with mixed pixels along depth edges), or the same robot raking a round
+bin's heap under its eave cameras (`in_bin`: the far wall in view, the bin's noise), is
+rendered at the instants of a 2 Hz session (`--seconds` long; not timed). Then:
 
 - accuracy: `LiveMap.update` on each instant's frames, against the scene's exact surface:
   grain RMS over the observed cells more than 0.5 m outside the robot's footprint, and the
@@ -13,7 +14,9 @@ The moving-robot scene (sim/robot.py: wall cameras, a robot raking the first of 
 - age: the real `LiveSession` (its pacing, its map builds, the encoding) at 2 Hz on frames
   served as a camera serves them (the newest rendered instant), one core: the share of maps
   at least a period old when sent;
-- the session-start check (live/coverage.py): whether the setup is accepted.
+- the session-start check (live/coverage.py): whether the setup is accepted;
+- in a bin, the highest cell within 0.5 m of the wall above the grain, and the robots found
+  away from the robot.
 
 Targets (#25): 4 wall cameras at 424x240: <= 10 % of maps a period old, RMS <= 20 mm, footprint
 never more than 30 mm above the grain; at 848x480 <= 10 mm and <= 20 mm.
@@ -66,8 +69,8 @@ BAY_SETUPS = [name for name, setup in SETUPS.items() if setup[0] == "bay"]
 
 def robot_for(scene: str) -> RakingRobot:
     """The raking robot in the bay, or across the heap of a round bin (8 m, eave 6 m: a bin
-    whose eave cameras pass the session check; 10 m: the simulator's default bin, eave 7 m;
-    12 m: bench/silos.py's, eave 8 m)."""
+    whose eight eave cameras pass the session check at 1280x720; 10 m: the simulator's
+    default bin, eave 7 m; 12 m: bench/silos.py's, eave 8 m)."""
     if scene == "bay":
         return RakingRobot(mounded_bay(grain("wheat")))
     if scene == "bin-8":
