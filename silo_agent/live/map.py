@@ -336,7 +336,7 @@ class LiveMap:
         there (the map so far, 1.5 cells inside the wall) saw the wall, whatever depth noise
         made of it, and is left out: the full scan's verdict (reconstruct/walls.py). Depth
         noise throws the points of a far wall a camera looks across up to metres along their
-        rays, into the bin: an 8 m bin seen by eight eave cameras read up to 2.6 m high in
+        rays, into the bin: an 8 m bin seen by eight eave cameras read up to 2.7 m high in
         the ring by the wall (bench/live_robot.py). Before the map has a height (a session's
         first frames, without a full scan's map to start from) the grain at the wall comes
         from a first pass of the pixels whose depth is short of the wall's by three times its
