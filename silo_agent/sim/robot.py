@@ -82,8 +82,10 @@ def mounded_bay(g: Grain) -> Scene:
 
 def in_bin(scene: Scene) -> RakingRobot:
     """The robot raking `scene`, a bin (scenes.bin_scene), along PATH across its centre: its
-    heap cut down to the grain's level by the wall, seen by the bin's eave cameras."""
-    return RakingRobot(scene, rake_z=float(scene.params["grain_min_z"]) + RAKE_CLEARANCE_M)
+    heap cut down to the grain's level by the wall (`level_m`, not the lowest grain: a
+    crater's or a side draw's bottom would have it dig a trench metres deep in one pass),
+    seen by the bin's eave cameras."""
+    return RakingRobot(scene, rake_z=float(scene.params["level"]) + RAKE_CLEARANCE_M)
 
 
 @dataclass(frozen=True)
