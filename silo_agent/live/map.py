@@ -56,7 +56,11 @@ if TYPE_CHECKING:
     from silo_agent.sim.camera import Frame
 
 WALL_LEVEL_M = 0.5  # the grain by a bin's wall: the map opened over this width (below)
-ROBOT_STEEP_M = 0.12  # rise of the top-hat within 2 cells that no grain slope makes
+ROBOT_STEEP_M = 0.12  # rise of the top-hat within ROBOT_STEEP_CELLS that no grain slope makes
+# ... 3 cells, not 2: seen from eave cameras 5-6 m away, the robot's rim spreads over 3 cells of
+# 2 cm, and with 2 an 8 m bin's map found only 10 of the 20 steep cells a robot needs and let
+# it in, 0.3 m high (bench/results/live-robot.md); 0.12 m within 6 cm is still a 63 deg slope
+ROBOT_STEEP_CELLS = 3
 ROBOT_MIN_EDGE_M = 0.4  # steep edge a robot shows at least (a fifth of a 0.6 x 0.4 m outline)
 ROBOT_AREA_M2 = (0.04, 1.0)  # a robot's top, its noisy edge, a heap's tip it stands on
 ROBOT_TOPHAT_M = 0.45  # a square this wide fits in no 0.4 m wide robot: the opening removes it
@@ -441,7 +445,8 @@ class LiveMap:
         window = max(3, int(np.ceil(ROBOT_TOPHAT_M / step)))
         tophat = work - ndimage.grey_opening(work, size=(window, window))
         raised = self.region & (tophat > settings.robot_min_height_m)
-        steep = measured & (tophat - ndimage.minimum_filter(tophat, size=5) > ROBOT_STEEP_M)
+        low = ndimage.minimum_filter(tophat, size=2 * ROBOT_STEEP_CELLS + 1)
+        steep = measured & (tophat - low > ROBOT_STEEP_M)
         labels, n = ndimage.label(raised, structure=np.ones((3, 3)))
         if n == 0:
             return np.zeros(self.grid.shape, dtype=bool), []
