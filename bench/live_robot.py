@@ -61,6 +61,7 @@ SETUPS = {  # name -> scene, views, width, height
     "8 m bin, 8 eave cameras, 424x240": ("bin-8", EAVE_8, 424, 240),
     "8 m bin, 8 eave cameras, 848x480": ("bin-8", EAVE_8, 848, 480),
     "8 m bin, 8 eave cameras, 1280x720": ("bin-8", EAVE_8, 1280, 720),
+    "8 m side-draw bin, 8 eave cameras, 1280x720": ("bin-8-side", EAVE_8, 1280, 720),
     "10 m bin, 8 eave cameras, 1280x720": ("bin-10", EAVE_8, 1280, 720),
     "12 m bin, 8 eave cameras, 1280x720": ("bin-12", EAVE_8, 1280, 720),
 }
@@ -69,7 +70,8 @@ BAY_SETUPS = [name for name, setup in SETUPS.items() if setup[0] == "bay"]
 
 def robot_for(scene: str) -> RakingRobot:
     """The raking robot in the bay, or across the heap of a round bin (8 m, eave 6 m: a bin
-    whose eight eave cameras pass the session check at 1280x720; 10 m: the simulator's
+    whose eight eave cameras pass the session check at 1280x720, heaped or drawn down at the
+    side; 10 m: the simulator's
     default bin, eave 7 m; 12 m: bench/silos.py's, eave 8 m)."""
     if scene == "bay":
         return RakingRobot(mounded_bay(grain("wheat")))
@@ -77,6 +79,18 @@ def robot_for(scene: str) -> RakingRobot:
         return in_bin(
             bin_scene(
                 grain("wheat"), name="bin-8m", diameter_m=8.0, eave_m=6.0, feature_radius_m=3.0
+            )
+        )
+    if scene == "bin-8-side":  # drawn down at the wall (+x), level 1.5 m elsewhere
+        return in_bin(
+            bin_scene(
+                grain("wheat"),
+                name="bin-8m-side",
+                diameter_m=8.0,
+                eave_m=6.0,
+                surface="side",
+                level_m=1.5,
+                feature_radius_m=3.0,
             )
         )
     if scene == "bin-10":
