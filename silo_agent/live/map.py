@@ -429,11 +429,13 @@ class LiveMap:
     # ------------------------------------------------------------ robot
 
     def find_robots(
-        self,
-        surface: np.ndarray,
-        measured: np.ndarray,
+        self, surface: np.ndarray, measured: np.ndarray, now_s: float
     ) -> tuple[np.ndarray, list[RobotSighting]]:
-        """Cells of compact, steep-sided objects standing above the local surface."""
+        """Cells of compact, steep-sided objects standing above the local surface, and of a
+        compact raised one where a robot of the last map can have driven to by `now_s`: seen
+        from eave cameras 6 m away, at the point of a bin farthest from all of them, a robot's
+        rim blurs into a slope its steep cells no longer show (an 8 m bin's centre: 7-13 of
+        the 20 asked), while its raised top stays as plain (bench/results/live-robot.md)."""
         settings, step = self.settings, self.grid.step
         work = surface
         holes = ~np.isfinite(surface)
@@ -454,22 +456,24 @@ class LiveMap:
         count = sum_by_label(np.ones(labels.shape), labels, n)
         area = count * step * step
         steep_cells = sum_by_label(steep & raised, labels, n)
-        robot = (
-            (steep_cells >= ROBOT_MIN_EDGE_M / step)
-            & (area >= ROBOT_AREA_M2[0])
-            & (area <= ROBOT_AREA_M2[1])
-        )
+        compact = (area >= ROBOT_AREA_M2[0]) & (area <= ROBOT_AREA_M2[1])
+        steep_sided = compact & (steep_cells >= ROBOT_MIN_EDGE_M / step)
+        xs, ys = self._centres
+        # the centre of its steep edge, not of all raised cells: a robot on a heap's tip
+        # raises the tip's cells with it, and they would pull the centre off the robot; a
+        # blob found by its track alone has too few steep cells for that: all of its cells
+        by_edge = np.concatenate([[False], steep_sided])[labels]
+        edge = np.where(by_edge, np.where(steep, labels, 0), labels)
+        edge_cells = np.where(steep_sided, steep_cells, count)
+        centre_x = sum_by_label(xs, edge, n) / edge_cells
+        centre_y = sum_by_label(ys, edge, n) / edge_cells
+        robot = steep_sided | (compact & self._reachable(centre_x, centre_y, now_s))
         if not robot.any():
             return np.zeros(self.grid.shape, dtype=bool), []
         keep = np.concatenate([[False], robot])
         cells = keep[labels]
         ids = index[robot]
-        xs, ys = self._centres
-        # the centre of its steep edge, not of all raised cells: a robot on a heap's tip
-        # raises the tip's cells with it, and they would pull the centre off the robot
-        edge = np.where(steep & raised, labels, 0)
-        centre_x = np.concatenate([[0.0], sum_by_label(xs, edge, n) / np.maximum(steep_cells, 1)])
-        centre_y = np.concatenate([[0.0], sum_by_label(ys, edge, n) / np.maximum(steep_cells, 1)])
+        centre_x, centre_y = np.concatenate([[0.0], centre_x]), np.concatenate([[0.0], centre_y])
         top = sum_by_label(work, labels, n, top=True)
         spread = np.hypot(xs - centre_x[labels], ys - centre_y[labels])
         radius = sum_by_label(spread, edge, n, top=True) + step / 2
@@ -530,6 +534,18 @@ class LiveMap:
 
     # ------------------------------------------------------------ update
 
+    def _reach(self, track: tuple[float, ...], now_s: float) -> float:
+        """How far from a track's last sighting its robot can be by `now_s`."""
+        return MAX_ROBOT_SPEED_M_S * (now_s - track[2]) + self.settings.robot_radius_m
+
+    def _reachable(self, xs: np.ndarray, ys: np.ndarray, now_s: float) -> np.ndarray:
+        """Which of the points (xs, ys) a robot of the last map can have driven to."""
+        out = np.zeros(len(xs), dtype=bool)
+        for track in self._tracks:  # a few
+            if now_s > track[2]:
+                out |= np.hypot(xs - track[0], ys - track[1]) <= self._reach(track, now_s)
+        return out
+
     def _motions(self, robots: list[RobotSighting], now_s: float) -> list[tuple[float, float]]:
         """Each robot's velocity (m/s) from its sighting in the last map (the nearest one it
         can have driven from), smoothed over maps; 0 for a robot new to the map."""
@@ -540,10 +556,7 @@ class LiveMap:
                 return float(np.hypot(robot.x - track[0], robot.y - track[1]))
 
             reachable = [
-                t
-                for t in self._tracks
-                if now_s > t[2]
-                and gap(t) <= MAX_ROBOT_SPEED_M_S * (now_s - t[2]) + self.settings.robot_radius_m
+                t for t in self._tracks if now_s > t[2] and gap(t) <= self._reach(t, now_s)
             ]
             best = min(reachable, key=gap, default=None)
             if best is None:
@@ -644,7 +657,7 @@ class LiveMap:
         measured &= (count >= 2) | (neighbours(measured) > SPARSE_NEIGHBOURS)
         frame = np.where(measured, frame, np.nan)
         surface = np.where(measured, frame, self._filled())
-        robot_cells, robots = self.find_robots(surface, measured)
+        robot_cells, robots = self.find_robots(surface, measured, now_s)
         if seen:
             robots = merged([*robots, *seen], 2 * s.robot_radius_m)
         margin = int(np.ceil(s.robot_margin_m / self.grid.step))
