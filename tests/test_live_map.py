@@ -316,3 +316,28 @@ def test_a_blurred_robot_is_a_robot_only_where_the_last_maps_robot_can_be() -> N
     live = LiveMap(grid, LiveConfig())
     assert len(live.update([plan_view(box_on_floor(-1.4))], 0.0).robots) == 1
     assert live.update([plan_view(box_on_floor(1.2, 0.06))], 0.5).robots == []
+
+
+def test_a_robot_found_by_its_edge_vouches_for_no_other_blob() -> None:
+    """The robot found again by its steep edge, a blurred box 0.9 m from where it was (within
+    its reach) is not taken up as a second robot; of two blurred boxes in its reach, only the
+    one nearer to where it was heading is."""
+    grid = Grid.over(np.array([[-1.9, -1.4], [1.9, -1.4], [1.9, 1.4], [-1.9, 1.4]]), 0.02)
+
+    def both(
+        first: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        second: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    ) -> DepthFrame:
+        return plan_view(lambda x, y: np.maximum(first(x, y), second(x, y)))
+
+    live = LiveMap(grid, LiveConfig())
+    assert len(live.update([plan_view(box_on_floor(-0.3))], 0.0).robots) == 1
+    robots = live.update([both(box_on_floor(-0.15), box_on_floor(0.6, 0.06))], 0.5).robots
+    assert len(robots) == 1
+    assert robots[0].x == pytest.approx(-0.15, abs=0.05)
+    live = LiveMap(grid, LiveConfig())
+    live.update([plan_view(box_on_floor(-0.6))], 0.0)
+    live.update([plan_view(box_on_floor(-0.45))], 0.5)  # heading +x at 0.3 m/s
+    robots = live.update([both(box_on_floor(-1.1, 0.06), box_on_floor(-0.3, 0.06))], 1.0).robots
+    assert len(robots) == 1
+    assert robots[0].x == pytest.approx(-0.3, abs=0.05)
