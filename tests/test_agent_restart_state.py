@@ -1,7 +1,8 @@
 """What a restarted daemon reports before its first scan: the Prometheus last-scan gauges hold
 the cached results (not 0: an empty silo), and the `outbox` alarm still raised is declared
 and raised wherever alarms are (Prometheus, Sparkplug NBIRTH, Home Assistant discovery, the
-retained `P/alarm/outbox`), from the one list of alarm types."""
+retained `P/alarm/outbox`), from the one list of alarm types; and a live session is judged
+at the newest cached scan's level, as before the restart."""
 
 from __future__ import annotations
 
@@ -12,11 +13,14 @@ import urllib.request
 from datetime import datetime, timedelta
 from pathlib import Path
 
+import numpy as np
 import pysparkplug as ps
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from silo_agent.analysis.alarm_types import ALARM_TYPES
+from silo_agent.scan import read_scan
+from silo_agent.storage.audit import read_heightmap
 from tests.support.agent import BASE, SILO, Daemon, write_config
 from tests.support.mqtt import validate_json
 from tests.support.mqtt_broker import free_port
@@ -151,3 +155,40 @@ def test_outbox_alarm_is_declared_and_raised_everywhere_across_a_restart(
         finally:
             agent.kill()
     assert list(tmp_path.glob("outbox.sqlite.corrupt-*"))
+
+
+@pytest.mark.slow
+def test_a_live_session_is_judged_at_the_last_scans_level_across_a_restart(
+    tmp_path: Path, broker, collector_factory
+) -> None:
+    """Before its first scan a restarted agent judges a live session's cameras at the level
+    of the newest cached scan, as it did before the restart, not halfway to the cameras: the
+    two 424x240 wall cameras are refused, and the reply says at which level."""
+    config = write_config(tmp_path / "agent.toml", broker.port, tmp_path)
+    assert Daemon(config, tmp_path, "--scans", "1").wait(120) == 0
+    (scan_dir,) = (tmp_path / "scans").glob(f"{SILO}-*")
+    heightmap = read_heightmap(scan_dir)
+    assert heightmap is not None
+    level = float(np.nanmean(heightmap.heights))
+    cameras_z = [c.extrinsic[2][3] for c in read_scan(scan_dir).cameras]
+    assert abs(level - min(cameras_z) / 2) > 0.05  # halfway from the floor (z = 0): not it
+
+    write_config(config, broker.port, tmp_path, schedule={"scan_at_start": False})
+    col = collector_factory(broker, [f"{BASE}/#"])
+    agent = Daemon(config, tmp_path)
+    try:
+        col.wait_for(
+            lambda ms: any(
+                m.topic == f"{BASE}/status" and json.loads(m.payload)["state"] == "online"
+                for m in ms
+            )
+        )
+        col.publish(f"{BASE}/cmd/live", b'{"on": true, "request_id": "after-restart"}')
+        (message,) = col.wait_topic(f"{BASE}/cmd/live/reply")
+        reply = validate_json(message.payload)
+        assert reply["status"] == "error" and reply["request_id"] == "after-restart"
+        assert f"(at z = {level:.2f} m)" in reply["error"]
+        agent.signal(signal.SIGTERM)
+        assert agent.wait(20) == 0
+    finally:
+        agent.kill()

@@ -112,7 +112,7 @@ class Agent:
         self.cache = AuditCache(config.audit, config.silo.id)
         self.pipeline = Pipeline(config, self.telemetry, self.cache, self.metrics)
         self.telemetry.restore_alarms(self.pipeline.state.active)
-        self._restore_result()
+        self._restored_id = self._restore_result()  # the newest cached scan's id
         self.metrics.set_alarms(self.telemetry.raised_alarms())
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -129,17 +129,18 @@ class Agent:
         self.live = LiveControl(config, self.telemetry, self._wake, self._last_map)
         self.companions = list(companions)
 
-    def _restore_result(self) -> None:
+    def _restore_result(self) -> str | None:
         """The last results in the audit cache into what reports them between scans: the
         Sparkplug node (a host applies the NDATA the outbox replays after a restart as
         history, not as the current value) and the Prometheus gauges. Without this both
-        would show nulls or zeros (an empty silo, a stale scan) until the next scan."""
+        would show nulls or zeros (an empty silo, a stale scan) until the next scan. Returns
+        the newest cached scan's id (None: none readable)."""
         try:
             newest = ScanSummary.from_json(self.cache.latest_result())
             self.telemetry.restore_result(newest)  # validated as for publishing
         except ValueError as exc:
             log.warning(RESTORE_FAILED, reason=str(exc), cache=str(self.cache.directory))
-            return
+            return None
         newest_valid: ScanSummary | None = newest
         if not newest.valid:
             try:
@@ -149,6 +150,7 @@ class Agent:
                 log.info("no valid scan result restored", reason=str(exc))
                 newest_valid = None
         self.metrics.restore_results(newest, newest_valid)
+        return newest.scan_id
 
     @property
     def scans_done(self) -> int:
@@ -161,9 +163,11 @@ class Agent:
         return self._last
 
     def _last_map(self) -> HeightMap | None:
-        """The last full scan's height map, for a live session to start from."""
-        last = self._last
-        return self.cache.heightmap(last.scan_id) if last is not None else None
+        """The last full scan's height map, for a live session to start from and to be
+        checked at; before this run's first scan, the newest cached one's: a restart does not
+        change what a session starts from or whether it is accepted."""
+        last = self._last.scan_id if self._last is not None else self._restored_id
+        return self.cache.heightmap(last) if last is not None else None
 
     # ------------------------------------------------------------ triggers
 
