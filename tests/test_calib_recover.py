@@ -18,8 +18,9 @@ from silo_agent.calibrate import (
 )
 from silo_agent.config import CalibrationConfig, ReconstructionConfig
 from silo_agent.reconstruct import reconstruct
+from silo_agent.sim.grains import grain
 from silo_agent.sim.layouts import perturb, view_pose
-from silo_agent.sim.scenes import make_scene
+from silo_agent.sim.scenes import bin_scene, make_scene
 from silo_agent.sim.simulate import SimRig, simulate
 from tests.support.calib import knocked, render, rig
 
@@ -123,6 +124,23 @@ def test_a_correction_beyond_the_bound_is_refused(perturbed) -> None:
         calibrate(scan, CalibrationConfig(max_correction_m=0.004), floor=True)
     with pytest.raises(CalibrationError, match=r"max_correction_deg = 0\.1"):
         calibrate(scan, CalibrationConfig(max_correction_deg=0.1), floor=True)
+
+
+def test_a_bins_calibration_says_its_poses_need_checking() -> None:
+    """In a bin the eave cameras see the floor 6-10 m away: `calibrate` says so with every
+    result and with its refusal (bench/results/calibration-bins.md: it left a simulated 8 m
+    bin's cameras further off than they were); outside bins it says nothing of the kind."""
+    scene = bin_scene(grain("wheat"), name="bin-8m", diameter_m=8.0, eave_m=6.0)
+    scan = simulate(scene, ["A1", "A5"], 0, (0.5, 0.01), resolution=(424, 240))
+    alone = CalibrationConfig(min_overlap=1.0)  # each camera by itself: no pair registered
+    warning = "in a bin the cameras see the floor and the grain from the eave"
+    result = calibrate(scan, alone, floor=False)
+    assert any(warning in note for note in result.notes)
+    assert warning in result.describe()
+    with pytest.raises(CalibrationError, match=warning):
+        calibrate(scan, alone.model_copy(update={"max_correction_deg": 0.01}), floor=False)
+    bay = render(VIEWS, seed=5)
+    assert not any(warning in note for note in calibrate(bay, alone, floor=False).notes)
 
 
 @pytest.mark.slow
