@@ -26,6 +26,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from benchlib import header, pinned
@@ -43,24 +44,15 @@ VIEWS = ["A1", "A3", "A5", "A7"]
 RESOLUTION = (1280, 720)
 
 
+SURFACES: dict[str, dict[str, Any]] = {  # scene -> bin_scene's surface arguments
+    "empty": {"surface": "level", "level_m": 0.01},
+    "heap": {"surface": "heap", "level_m": 0.0, "feature_radius_m": 2.0},
+}
+
+
 def scene_of(name: str) -> Scene:
-    if name == "empty":
-        return bin_scene(
-            grain("wheat"),
-            name="bin-8m-empty",
-            diameter_m=8.0,
-            eave_m=6.0,
-            surface="level",
-            level_m=0.01,
-        )
     return bin_scene(
-        grain("wheat"),
-        name="bin-8m-heap",
-        diameter_m=8.0,
-        eave_m=6.0,
-        surface="heap",
-        level_m=0.0,
-        feature_radius_m=2.0,
+        grain("wheat"), name=f"bin-8m-{name}", diameter_m=8.0, eave_m=6.0, **SURFACES[name]
     )
 
 
@@ -100,7 +92,7 @@ def calibrated(scan: Scan, floor: bool) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="+", default=["empty", "heap"])
+    parser.add_argument("--scenes", nargs="+", default=list(SURFACES), choices=list(SURFACES))
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--cpu", type=int, default=0, help="pin to this CPU (-1: do not pin)")
     parser.add_argument("--out", type=Path)

@@ -23,7 +23,7 @@ from silo_agent.scan import CameraCloud, Scan, Site, gravity_angles, gravity_of,
 
 # In a bin the cameras hang at the eave and see the floor and the grain 6-10 m away, where the
 # D455's noise is a decimetre and more: on a simulated 8 m bin the floor fit alone was off by
-# 1.5-2.2 deg at the cameras' true poses, and `calibrate` refused, or left the cameras further
+# 0.6-2.2 deg at the cameras' true poses, and `calibrate` refused, or left the cameras further
 # off than they were, with and without the floor (bench/results/calibration-bins.md). Said
 # with every calibration of a bin, and with its refusal.
 BIN_WARNING = (
